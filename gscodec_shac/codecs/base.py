@@ -1,0 +1,115 @@
+"""The grid-codec contract and the registry that finds codecs by name.
+
+A grid codec turns integer planes (C, H, W) of ``bit_depth``-bit samples into
+bytes and back. ``qp=None`` means lossless; a lossy codec takes an integer QP.
+``decode`` is told the expected shape and bit depth (from the container header),
+so it can refuse a stream that does not match and never allocates more than the
+header justifies. Each codec reports the version of the library that made the
+bytes; the container records it.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Any, ClassVar
+
+import numpy as np
+
+from gscodec_shac.errors import BitstreamError, CodecUnavailableError, ValidationError
+
+
+class GridCodec(ABC):
+    """Base class of the grid codecs (``hevc``, ``png``, ``jpegls``, ``raw``, ``hm``, ...)."""
+
+    #: Registry name.
+    name: ClassVar[str]
+    #: True when the codec has no lossy mode (``qp`` must be ``None``).
+    lossless_only: ClassVar[bool] = False
+
+    def __init__(self, **options: Any) -> None:
+        self.options = options
+
+    @classmethod
+    def check_available(cls) -> None:
+        """Raise :class:`CodecUnavailableError` (saying how to install) when unusable here."""
+
+    @abstractmethod
+    def version(self) -> str:
+        """Name and version of the library or binary doing the work, e.g. ``'x265 4.2 (PyAV 18.1.0)'``."""
+
+    @abstractmethod
+    def encode(self, planes: np.ndarray, bit_depth: int, qp: int | None) -> bytes:
+        """(C, H, W) uint16 planes with values < 2**bit_depth -> bytes."""
+
+    @abstractmethod
+    def decode(self, data: bytes, shape: tuple[int, int, int], bit_depth: int) -> np.ndarray:
+        """Bytes -> (C, H, W) uint16 planes of exactly ``shape``; raise BitstreamError otherwise."""
+
+    # -------------------------------------------------------------- helpers
+    def describe(self) -> dict[str, Any]:
+        """What the container stores about this codec (name, version, options)."""
+        return {"name": self.name, "version": self.version(), "options": dict(self.options)}
+
+    def _check_planes(self, planes: np.ndarray, bit_depth: int, qp: int | None) -> np.ndarray:
+        planes = np.asarray(planes)
+        if planes.ndim != 3:
+            raise ValidationError(f"{self.name}: planes must be (C, H, W), got shape {planes.shape}")
+        if not 1 <= bit_depth <= 16:
+            raise ValidationError(f"{self.name}: bit depth must be 1-16, got {bit_depth}")
+        if planes.size and (planes.min() < 0 or planes.max() >= 2**bit_depth):
+            raise ValidationError(f"{self.name}: values exceed {bit_depth} bits")
+        if qp is not None and self.lossless_only:
+            raise ValidationError(f"{self.name} is lossless only; it takes no QP (got {qp})")
+        return planes.astype(np.uint16, copy=False)
+
+    @staticmethod
+    def _check_decoded(name: str, planes: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
+        if tuple(planes.shape) != tuple(shape):
+            raise BitstreamError(f"{name} stream decodes to shape {tuple(planes.shape)}, header says {tuple(shape)}")
+        return planes
+
+
+CODECS: dict[str, type[GridCodec]] = {}
+
+
+def register_codec(cls: type[GridCodec]) -> type[GridCodec]:
+    """Class decorator adding a codec to :data:`CODECS` under ``cls.name``."""
+    CODECS[cls.name] = cls
+    return cls
+
+
+def get_codec(name: str, **options: Any) -> GridCodec:
+    """A codec instance by registry name; raises if unknown or unavailable here."""
+    _load_builtin_codecs()
+    if name not in CODECS:
+        raise ValidationError(f"unknown grid codec {name!r}; known: {', '.join(sorted(CODECS))}")
+    cls = CODECS[name]
+    cls.check_available()
+    try:
+        return cls(**options)
+    except TypeError as exc:
+        raise ValidationError(f"bad options for codec {name!r}: {exc}") from None
+
+
+def available_codecs() -> list[str]:
+    """Names of the codecs usable on this machine."""
+    _load_builtin_codecs()
+    usable = []
+    for name, cls in sorted(CODECS.items()):
+        try:
+            cls.check_available()
+        except CodecUnavailableError:
+            continue
+        usable.append(name)
+    return usable
+
+
+def _load_builtin_codecs() -> None:
+    import importlib
+
+    for module in ("raw", "png", "jpegls", "hevc", "hm"):
+        try:
+            importlib.import_module(f"gscodec_shac.codecs.{module}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"gscodec_shac.codecs.{module}":
+                raise

@@ -1,0 +1,1 @@
+"""File formats: Inria 3DGS PLY (:mod:`.ply`) and camera models (:mod:`.cameras`)."""

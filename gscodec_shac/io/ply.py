@@ -1,0 +1,195 @@
+"""Read and write Inria 3DGS PLY files.
+
+Layout (one ``vertex`` element, float32 scalars)::
+
+    x y z [nx ny nz] f_dc_0..2 f_rest_0..(3(K-1)-1) opacity scale_0..2 rot_0..3
+
+``f_rest`` is channel-major (all R coefficients, then G, then B); conversion to
+the coefficient-major ``sh_rest`` of :class:`GaussianCloud` happens here via
+:mod:`gscodec_shac.sh_index`. Any other vertex property (normals, custom fields)
+is kept in ``GaussianCloud.extra`` and written back, so a read/write round trip is
+bit-exact; for a file written by the Inria trainer it is byte-identical.
+
+Binary little/big endian and ASCII files are read (via ``plyfile``); files are
+written binary little endian, atomically (a temporary file renamed into place),
+so a failed write never leaves a half-written PLY behind.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+import warnings
+from pathlib import Path
+
+import numpy as np
+import plyfile
+
+from gscodec_shac import sh_index
+from gscodec_shac.errors import PlyFormatError, ValidationError
+from gscodec_shac.gaussians import GaussianCloud
+
+_REQUIRED = (
+    ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
+    + [f"scale_{i}" for i in range(3)]
+    + [f"rot_{i}" for i in range(4)]
+)
+_F_REST = re.compile(r"^f_rest_(\d+)$")
+_NORMALS = ("nx", "ny", "nz")
+
+
+def read_ply(path: str | os.PathLike) -> GaussianCloud:
+    """Read an Inria 3DGS PLY into a :class:`GaussianCloud`.
+
+    Raises :class:`PlyFormatError` with one sentence for: a missing or unreadable
+    file, a file that is not a PLY, no ``vertex`` element, zero vertices, missing
+    3DGS properties, an ``f_rest`` count that fits no SH degree 0-4, list
+    properties, or non-finite values.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise PlyFormatError(f"{path}: no such file")
+    with open(path, "rb") as handle:
+        if handle.read(4) != b"ply\n" and not _starts_with_ply(path):
+            raise PlyFormatError(f"{path}: not a PLY file (it does not start with 'ply')")
+    try:
+        data = plyfile.PlyData.read(str(path))
+    except Exception as exc:  # plyfile raises several types for malformed input
+        raise PlyFormatError(f"{path}: malformed or truncated PLY ({_one_line(exc)})") from None
+
+    names = [element.name for element in data.elements]
+    if "vertex" not in names:
+        raise PlyFormatError(f"{path}: no 'vertex' element (elements: {', '.join(names) or 'none'})")
+    others = [n for n in names if n != "vertex"]
+    if others:
+        warnings.warn(f"{path}: PLY elements {others} are not Gaussians and are ignored", stacklevel=2)
+    vertex = data["vertex"]
+    for prop in vertex.properties:
+        if isinstance(prop, plyfile.PlyListProperty):
+            raise PlyFormatError(f"{path}: list property {prop.name!r} is not supported in a 3DGS PLY")
+    table = vertex.data
+    count = len(table)
+    if count == 0:
+        raise PlyFormatError(f"{path}: the PLY has zero vertices")
+
+    fields = list(table.dtype.names)
+    missing = [name for name in _REQUIRED if name not in fields]
+    if missing:
+        raise PlyFormatError(f"{path}: not a 3DGS PLY, missing properties: {', '.join(missing)}")
+    rest_ids = sorted(int(_F_REST.match(f).group(1)) for f in fields if _F_REST.match(f))
+    if rest_ids != list(range(len(rest_ids))):
+        raise PlyFormatError(f"{path}: f_rest_* properties are not numbered 0..{len(rest_ids) - 1}")
+    if len(rest_ids) % 3:
+        raise PlyFormatError(
+            f"{path}: {len(rest_ids)} f_rest properties fit no SH degree "
+            f"(degrees 0-4 need {_valid_rest_counts()})"
+        )
+    try:
+        sh_index.degree_from_rest_count(len(rest_ids) // 3)
+    except ValidationError:
+        raise PlyFormatError(
+            f"{path}: {len(rest_ids)} f_rest properties fit no SH degree "
+            f"(degrees 0-4 need {_valid_rest_counts()})"
+        ) from None
+
+    def stack(columns: list[str]) -> np.ndarray:
+        if not columns:
+            return np.zeros((count, 0), dtype=np.float32)
+        return np.stack([np.asarray(table[c], dtype=np.float32) for c in columns], axis=1)
+
+    f_rest = stack([f"f_rest_{i}" for i in rest_ids])
+    known = set(_REQUIRED) | {f"f_rest_{i}" for i in rest_ids}
+    extra = {name: np.array(table[name]) for name in fields if name not in known}
+    try:
+        return GaussianCloud(
+            means=stack(["x", "y", "z"]),
+            scales=stack([f"scale_{i}" for i in range(3)]),
+            quats=stack([f"rot_{i}" for i in range(4)]),
+            opacities=np.asarray(table["opacity"], dtype=np.float32),
+            sh_dc=stack(["f_dc_0", "f_dc_1", "f_dc_2"]),
+            sh_rest=sh_index.sh_rest_from_inria_rest(f_rest),
+            extra=extra,
+        )
+    except ValidationError as exc:
+        raise PlyFormatError(f"{path}: {exc}") from None
+
+
+def write_ply(path: str | os.PathLike, cloud: GaussianCloud, *, write_normals: bool = True) -> None:
+    """Write ``cloud`` as a binary little-endian Inria 3DGS PLY, atomically.
+
+    ``nx ny nz`` come from ``cloud.extra`` when present; otherwise zero normals are
+    written (as the Inria trainer does) unless ``write_normals`` is false. Other
+    extra properties follow the standard ones, in their stored order.
+    """
+    path = Path(path)
+    table = cloud_to_structured(cloud, write_normals=write_normals)
+    element = plyfile.PlyElement.describe(table, "vertex")
+    directory = path.parent if str(path.parent) else Path(".")
+    if not directory.is_dir():
+        raise PlyFormatError(f"{path}: output directory {directory} does not exist")
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            plyfile.PlyData([element], text=False, byte_order="<").write(handle)
+        os.replace(tmp_name, path)
+    except BaseException:
+        if os.path.exists(tmp_name):
+            os.unlink(tmp_name)
+        raise
+
+
+def cloud_to_structured(cloud: GaussianCloud, *, write_normals: bool = True) -> np.ndarray:
+    """The PLY vertex table of ``cloud`` as a numpy structured array (Inria order)."""
+    n = cloud.num_gaussians
+    f_rest = sh_index.inria_rest_from_sh_rest(cloud.sh_rest)
+    columns: list[tuple[str, np.ndarray]] = [("x", cloud.means[:, 0]), ("y", cloud.means[:, 1]), ("z", cloud.means[:, 2])]
+    if all(k in cloud.extra for k in _NORMALS):
+        columns += [(k, cloud.extra[k]) for k in _NORMALS]
+    elif write_normals:
+        columns += [(k, np.zeros(n, dtype=np.float32)) for k in _NORMALS]
+    columns += [(f"f_dc_{i}", cloud.sh_dc[:, i]) for i in range(3)]
+    columns += [(f"f_rest_{i}", f_rest[:, i]) for i in range(f_rest.shape[1])]
+    columns += [("opacity", cloud.opacities)]
+    columns += [(f"scale_{i}", cloud.scales[:, i]) for i in range(3)]
+    columns += [(f"rot_{i}", cloud.quats[:, i]) for i in range(4)]
+    written = {name for name, _ in columns}
+    for key, value in cloud.extra.items():
+        if key in written:
+            continue
+        if value.ndim != 1:
+            raise PlyFormatError(f"extra property {key!r} has shape {value.shape}; PLY scalars must be 1-D")
+        columns.append((key, value))
+    dtype = [(name, _ply_dtype(values)) for name, values in columns]
+    table = np.empty(n, dtype=dtype)
+    for name, values in columns:
+        table[name] = values
+    return table
+
+
+def _ply_dtype(values: np.ndarray) -> str:
+    kind = np.asarray(values).dtype
+    if kind == np.float32:
+        return "<f4"
+    if kind == np.float64:
+        return "<f8"
+    if np.issubdtype(kind, np.integer) and kind.itemsize <= 4:
+        return kind.newbyteorder("<").str
+    if kind == np.bool_:
+        return "u1"
+    raise PlyFormatError(f"cannot store values of dtype {kind} in a PLY property")
+
+
+def _valid_rest_counts() -> str:
+    return ", ".join(str(3 * sh_index.num_rest_coeffs(d)) for d in range(sh_index.MAX_SH_DEGREE + 1))
+
+
+def _starts_with_ply(path: Path) -> bool:
+    with open(path, "rb") as handle:
+        head = handle.read(5)
+    return head in (b"ply\r\n",)
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__

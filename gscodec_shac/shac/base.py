@@ -1,0 +1,189 @@
+"""The SH stage contract shared by identity, truncation, SHAC-PCA, SHAC-LST and VQ.
+
+An SH stage is a scikit-learn-style transformer on the paper-order AC matrix
+``A`` (N x K', see :mod:`gscodec_shac.sh_index`):
+
+* ``fit(A) -> self`` learns shared side information (fitted attributes end in ``_``);
+* ``transform(A) -> F`` gives the per-Gaussian features the codec quantises (N x D);
+* ``inverse_transform(F) -> A~`` reconstructs the AC matrix (N x K');
+* ``state() -> StageState`` is everything a decoder needs, serialisable compactly;
+  ``from_state(state)`` rebuilds a fitted stage from it.
+
+A stage whose ``uses_dc`` is true (the include-DC ablation of SHAC-PCA, paper
+Sec. VII-D1) takes ``[DC | A]`` (N x (3 + K')) instead and returns the same
+layout; the pipeline then does not code the DC separately.
+
+Side information is counted in the rate: ``state().nbytes()`` is the exact size of
+the serialised arrays and :meth:`StageState.to_bytes` is what goes into a container.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import struct
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+from gscodec_shac.errors import GscodecError, ValidationError
+
+_STATE_MAGIC = b"SHST"
+_ALLOWED_DTYPES = {"<f2", "<f4", "<f8", "<i4", "<u2", "<u1", "|u1", "<i8", "|i1"}
+
+
+@dataclass
+class StageState:
+    """Parameters (JSON) plus named arrays: what a decoder needs to invert a stage."""
+
+    name: str
+    params: dict[str, Any] = field(default_factory=dict)
+    arrays: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def nbytes(self) -> int:
+        """Bytes of the arrays alone (the side information the paper counts, eq. 30/38)."""
+        return int(sum(a.nbytes for a in self.arrays.values()))
+
+    def to_bytes(self) -> bytes:
+        """Compact binary form: magic, JSON header length, JSON header, raw little-endian arrays."""
+        layout = []
+        payload = io.BytesIO()
+        for key, array in self.arrays.items():
+            array = np.ascontiguousarray(array)
+            dtype = array.dtype.newbyteorder("<") if array.dtype.byteorder == ">" else array.dtype
+            array = array.astype(dtype, copy=False)
+            layout.append({"key": key, "dtype": array.dtype.str, "shape": list(array.shape)})
+            payload.write(array.tobytes())
+        header = json.dumps({"name": self.name, "params": self.params, "arrays": layout}, separators=(",", ":")).encode()
+        return _STATE_MAGIC + struct.pack("<I", len(header)) + header + payload.getvalue()
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> "StageState":
+        """Inverse of :meth:`to_bytes`; raises :class:`GscodecError` on malformed input."""
+        if len(data) < 8 or data[:4] != _STATE_MAGIC:
+            raise GscodecError("SH stage state is corrupt (bad magic)")
+        (length,) = struct.unpack("<I", data[4:8])
+        if 8 + length > len(data):
+            raise GscodecError("SH stage state is truncated (header runs past the end)")
+        try:
+            header = json.loads(data[8 : 8 + length])
+            name, params, layout = header["name"], header["params"], header["arrays"]
+        except (ValueError, KeyError, TypeError):
+            raise GscodecError("SH stage state is corrupt (unreadable header)") from None
+        offset = 8 + length
+        arrays = {}
+        for entry in layout:
+            try:
+                dtype = np.dtype(entry["dtype"])
+                shape = tuple(int(s) for s in entry["shape"])
+            except (KeyError, TypeError, ValueError):
+                raise GscodecError("SH stage state is corrupt (bad array entry)") from None
+            if dtype.str not in _ALLOWED_DTYPES or any(s < 0 for s in shape):
+                raise GscodecError(f"SH stage state is corrupt (array {entry.get('key')!r})")
+            size = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+            if offset + size > len(data):
+                raise GscodecError(f"SH stage state is truncated (array {entry['key']!r})")
+            arrays[entry["key"]] = np.frombuffer(data, dtype=dtype, count=size // dtype.itemsize, offset=offset).reshape(shape).copy()
+            offset += size
+        if offset != len(data):
+            raise GscodecError("SH stage state is corrupt (trailing bytes)")
+        return cls(name=name, params=params, arrays=arrays)
+
+
+class ShStage(ABC):
+    """Base class of SH stages (see module docstring)."""
+
+    #: Registry name, e.g. ``"pca"``.
+    name: ClassVar[str]
+    #: True when the stage consumes and returns ``[DC | A]`` instead of ``A``.
+    uses_dc: bool = False
+
+    @abstractmethod
+    def fit(self, ac: np.ndarray) -> "ShStage":
+        """Learn the side information from an (N, K') matrix; returns ``self``."""
+
+    @abstractmethod
+    def transform(self, ac: np.ndarray) -> np.ndarray:
+        """(N, K') -> (N, D) features to code."""
+
+    @abstractmethod
+    def inverse_transform(self, features: np.ndarray) -> np.ndarray:
+        """(N, D) features -> (N, K') reconstruction."""
+
+    @abstractmethod
+    def state(self) -> StageState:
+        """Everything needed to invert the fitted stage."""
+
+    @classmethod
+    @abstractmethod
+    def from_state(cls, state: StageState) -> "ShStage":
+        """A fitted stage rebuilt from :meth:`state`."""
+
+    def fit_transform(self, ac: np.ndarray) -> np.ndarray:
+        return self.fit(ac).transform(ac)
+
+    @property
+    def n_features(self) -> int:
+        """D, the number of per-Gaussian values the codec will code (after fit)."""
+        raise NotImplementedError
+
+    def side_info_bytes(self) -> int:
+        """Exact bytes of the stored side information (arrays of :meth:`state`)."""
+        return self.state().nbytes()
+
+
+# ------------------------------------------------------------------------ registry
+STAGES: dict[str, type[ShStage]] = {}
+
+
+def register_stage(cls: type[ShStage]) -> type[ShStage]:
+    """Class decorator adding a stage to :data:`STAGES` under ``cls.name``."""
+    STAGES[cls.name] = cls
+    return cls
+
+
+def make_stage(name: str, **params: Any) -> ShStage:
+    """Instantiate a registered stage by name with its parameters."""
+    _load_builtin_stages()
+    if name not in STAGES:
+        raise ValidationError(f"unknown SH stage {name!r}; known: {', '.join(sorted(STAGES))}")
+    try:
+        return STAGES[name](**params)
+    except TypeError as exc:
+        raise ValidationError(f"bad parameters for SH stage {name!r}: {exc}") from None
+
+
+def stage_from_state(state: StageState) -> ShStage:
+    """Rebuild a fitted stage from its state (looked up by ``state.name``)."""
+    _load_builtin_stages()
+    if state.name not in STAGES:
+        raise GscodecError(f"unknown SH stage {state.name!r} in stored state; known: {', '.join(sorted(STAGES))}")
+    return STAGES[state.name].from_state(state)
+
+
+def _load_builtin_stages() -> None:
+    """Import the modules that register the built-in stages (kept lazy: torch etc.)."""
+    import importlib
+
+    for module in ("identity", "truncation", "pca", "lst", "vq"):
+        try:
+            importlib.import_module(f"gscodec_shac.shac.{module}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"gscodec_shac.shac.{module}":
+                raise
+
+
+def check_ac_matrix(ac: np.ndarray, expected_columns: int | None = None) -> np.ndarray:
+    """Validate an AC (or [DC | AC]) matrix and return it as a 2-D float array."""
+    ac = np.asarray(ac)
+    if ac.ndim != 2:
+        raise ValidationError(f"expected a 2-D (N, K') matrix, got shape {ac.shape}")
+    if not np.issubdtype(ac.dtype, np.floating):
+        raise ValidationError(f"expected a floating-point matrix, got dtype {ac.dtype}")
+    if expected_columns is not None and ac.shape[1] != expected_columns:
+        raise ValidationError(f"expected {expected_columns} columns, got {ac.shape[1]}")
+    if not np.isfinite(ac).all():
+        raise ValidationError(f"matrix has {int((~np.isfinite(ac)).sum())} non-finite values")
+    return ac
