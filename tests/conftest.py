@@ -2,19 +2,21 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-SHARED_SCENES = REPO_ROOT.parent / "shared" / "data" / "scenes"
+#: Real scenes: $GSCODEC_SHARED_SCENES, else ../shared/data/scenes beside the checkout.
+SHARED_SCENES = Path(os.environ.get("GSCODEC_SHARED_SCENES", REPO_ROOT.parent / "shared" / "data" / "scenes"))
 
 
 def shared_scene(*parts: str) -> Path:
     """Path under ../shared/data/scenes, or skip the test (with the reason) when absent."""
     path = SHARED_SCENES.joinpath(*parts)
     if not path.exists():
-        pytest.skip(f"real data not available: {path} (the ../shared checkout is absent)")
+        pytest.skip(f"real data not available: {path} (set GSCODEC_SHARED_SCENES or check out ../shared)")
     return path
 
 

@@ -16,8 +16,9 @@ import pytest
 from gscodec_shac.errors import CameraFormatError, GscodecError, ValidationError
 from gscodec_shac.io import cameras as cams
 from gscodec_shac.io.cameras import Camera
+from tests.conftest import SHARED_SCENES
 
-SCENES = Path(__file__).resolve().parents[2] / "shared" / "data" / "scenes"
+SCENES = SHARED_SCENES
 SNOWMIKU = SCENES / "snowmiku_capture"
 BONSAI = SCENES / "mipnerf360_bonsai"
 BONSAI_JSON = SCENES / "bonsai_cpu_sh3" / "cameras.json"
