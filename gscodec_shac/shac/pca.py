@@ -1,0 +1,331 @@
+"""SHAC-PCA: post-hoc PCA of the SH AC coefficients (paper Sec. V-A, eq. 23, 25-31).
+
+Fit: standardise A column-wise (eq. 23), take the eigen-decomposition of the
+K' x K' matrix A'^T A' (accumulated in float64 over row chunks; its eigenvalues
+are the s_k^2 of the SVD of eq. 25 and its eigenvectors the columns of V), and
+keep the first M eigenvectors as P (eq. 27). M is given, or is the smallest rank
+whose energy retention ER(M) (eq. 26) reaches a target.
+
+Transform / inverse (eq. 28-29)::
+
+    F  = A' P = (A - 1 mu^T) D_sigma^-1 P
+    A~ = F P^T D_sigma + 1 mu^T
+
+The paper prints eq. 29 as (F P^T + 1 mu^T) D_sigma, which scales the mean by
+sigma as well; that is not the inverse of eq. 23, so we implement the
+consistent form above.
+
+Ablation switches (Sec. VII-D1 and the RGB-joint design choice of Sec. V-A):
+
+* ``include_dc=True``: PCA over [DC | A] (N x (3 + K')); the stage then has
+  ``uses_dc = True`` and its input and output are [DC | A].
+* ``joint_rgb=False``: one PCA per colour channel, over that channel's columns
+  (every third column). The M components are shared out by *global* eigenvalue
+  order: M given -> the M largest eigenvalues over the three channel PCAs; ER
+  given -> the fewest such eigenvalues whose sum reaches the target. This is
+  the optimal split (largest captured energy for the count). P is then
+  block-structured and stored compactly, (K'/3) x M plus each component's
+  channel.
+
+Side information (P, mu, sigma) is rounded to ``side_dtype`` (float32 by default,
+float16 or float64 allowed) right after fitting, and the rounded values are used
+by transform and inverse alike, so encoder and decoder agree exactly.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from gscodec_shac.errors import GscodecError, ValidationError
+from gscodec_shac.shac.analysis import (
+    DEFAULT_CHUNK,
+    check_energy_target,
+    column_moments,
+    cumulative_energy,
+    rank_for_energy,
+    safe_scale,
+)
+from gscodec_shac.shac.base import ShStage, StageState, check_ac_matrix, register_stage
+
+SIDE_DTYPES = {"float16": np.float16, "float32": np.float32, "float64": np.float64}
+#: Bytes of one float32 (the unit of eq. 30's parameter counts in bytes).
+FLOAT32_BYTES = 4
+
+
+@register_stage
+class ShacPCA(ShStage):
+    """SHAC-PCA stage "pca" (scikit-learn transformer style; see module docstring).
+
+    Parameters
+    ----------
+    n_components: M, the number of principal components kept (eq. 27).
+    energy_retention: target ER in (0, 1]; M is the smallest rank reaching it
+        (eq. 26-27). If neither is given, 0.99 (the paper's pipeline setting,
+        Sec. VI-C2).
+    standardize: apply eq. 23 before the PCA (True in the paper).
+    include_dc: PCA over [DC | A] (ablation, Sec. VII-D1).
+    joint_rgb: one joint PCA over R, G, B (paper) or one per channel (ablation).
+    side_dtype: storage type of P, mu, sigma: "float32", "float16" or "float64".
+
+    Fitted attributes: ``components_`` (P, (K_in, M)), ``mean_`` and ``scale_``
+    (K_in,), ``n_components_``, ``singular_values_`` (s_k of A', all K_in),
+    ``energy_ratio_`` (s_k^2 / sum s^2 per component) and ``energy_`` (the
+    cumulative ER curve, eq. 26), ``component_channels_`` (per-channel mode).
+    K_in is K' or 3 + K' with ``include_dc``.
+    """
+
+    name = "pca"
+
+    def __init__(
+        self,
+        n_components: int | None = None,
+        energy_retention: float | None = None,
+        *,
+        standardize: bool = True,
+        include_dc: bool = False,
+        joint_rgb: bool = True,
+        side_dtype: str = "float32",
+        chunk_size: int = DEFAULT_CHUNK,
+    ) -> None:
+        if n_components is not None and energy_retention is not None:
+            raise ValidationError("give either n_components or energy_retention for SHAC-PCA, not both")
+        if n_components is not None and not _is_positive_int(n_components):
+            raise ValidationError(f"n_components must be a positive integer, got {n_components!r}")
+        if n_components is None and energy_retention is None:
+            energy_retention = 0.99
+        if energy_retention is not None:
+            energy_retention = check_energy_target(energy_retention)
+        if side_dtype not in SIDE_DTYPES:
+            raise ValidationError(f"side_dtype must be one of {', '.join(SIDE_DTYPES)}, got {side_dtype!r}")
+        if not _is_positive_int(chunk_size):
+            raise ValidationError(f"chunk_size must be positive, got {chunk_size}")
+        self.n_components = None if n_components is None else int(n_components)
+        self.energy_retention = energy_retention
+        self.standardize = bool(standardize)
+        self.include_dc = bool(include_dc)
+        self.joint_rgb = bool(joint_rgb)
+        self.side_dtype = side_dtype
+        self.chunk_size = int(chunk_size)
+        self.uses_dc = self.include_dc
+        self.components_: np.ndarray | None = None
+        self.mean_: np.ndarray | None = None
+        self.scale_: np.ndarray | None = None
+        self.n_components_: int | None = None
+        self.singular_values_: np.ndarray | None = None
+        self.energy_ratio_: np.ndarray | None = None
+        self.energy_: np.ndarray | None = None
+        self.component_channels_: np.ndarray | None = None
+        self._n_in = 0
+
+    # ------------------------------------------------------------------ fit
+    def fit(self, ac: np.ndarray) -> "ShacPCA":
+        """Learn mu, sigma (eq. 23) and P (eq. 25-27) from (N, K_in)."""
+        ac = check_ac_matrix(ac)
+        n_in = ac.shape[1]
+        if n_in == 0 or (self.include_dc and n_in <= 3):
+            raise ValidationError("SHAC-PCA needs AC coefficients (SH degree >= 1)")
+        if n_in % 3:
+            raise ValidationError(f"expected R, G, B columns (a multiple of 3), got {n_in} columns")
+        if self.n_components is not None and self.n_components > n_in:
+            raise ValidationError(f"n_components={self.n_components} exceeds the {n_in} input columns")
+        moments = column_moments(ac, self.chunk_size)
+        scale = safe_scale(moments.std(), moments.mean) if self.standardize else np.ones(n_in)
+        scatter = moments.scatter / np.outer(scale, scale)  # A'^T A'
+
+        if self.joint_rgb:
+            values, vectors = _sorted_eigh(scatter)
+            channels = None
+        else:
+            values, vectors, channels = self._per_channel_eigh(scatter)
+        self.singular_values_ = np.sqrt(values)
+        self.energy_ratio_ = values / values.sum() if values.sum() > 0 else np.full(n_in, 1.0 / n_in)
+        self.energy_ = cumulative_energy(values)
+        m = self.n_components or rank_for_energy(self.energy_, self.energy_retention)
+
+        side = SIDE_DTYPES[self.side_dtype]
+        self.n_components_ = m
+        self.components_ = vectors[:, :m].astype(side).astype(np.float64)
+        self.mean_ = moments.mean.astype(side).astype(np.float64)
+        self.scale_ = scale.astype(side).astype(np.float64)
+        if np.any(self.scale_ == 0) or not all(np.isfinite(a).all() for a in (self.scale_, self.mean_)):
+            raise ValidationError(
+                f"a mean or standard deviation does not fit in {self.side_dtype}; use side_dtype='float32'"
+            )
+        self.component_channels_ = None if channels is None else channels[:m].copy()
+        self._n_in = n_in
+        return self
+
+    @staticmethod
+    def _per_channel_eigh(scatter: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Eigen-pairs of each channel's block, embedded in K_in and merged by eigenvalue."""
+        n_in = scatter.shape[0]
+        values, vectors, channels = [], [], []
+        for c in range(3):
+            idx = np.arange(c, n_in, 3)
+            vals, vecs = _sorted_eigh(scatter[np.ix_(idx, idx)])
+            full = np.zeros((n_in, idx.size))
+            full[idx] = vecs
+            values.append(vals)
+            vectors.append(full)
+            channels.append(np.full(idx.size, c))
+        values_all = np.concatenate(values)
+        order = np.argsort(-values_all, kind="stable")
+        return values_all[order], np.concatenate(vectors, axis=1)[:, order], np.concatenate(channels)[order]
+
+    # ------------------------------------------------------------ transform
+    def transform(self, ac: np.ndarray) -> np.ndarray:
+        """Eq. 28: F = A' P, shape (N, M); float32 input gives float32 output."""
+        self._check_fitted()
+        ac = check_ac_matrix(ac, self._n_in)
+        dtype = np.result_type(ac.dtype, np.float32)
+        weights = (self.components_ / self.scale_[:, None]).astype(dtype)
+        out = np.empty((ac.shape[0], self.n_components_), dtype=dtype)
+        mean = self.mean_.astype(dtype)
+        for start in range(0, ac.shape[0], self.chunk_size):
+            stop = start + self.chunk_size
+            np.matmul(ac[start:stop] - mean, weights, out=out[start:stop])
+        return out
+
+    def inverse_transform(self, features: np.ndarray) -> np.ndarray:
+        """Eq. 29 (consistent form): A~ = F P^T D_sigma + 1 mu^T, shape (N, K_in)."""
+        self._check_fitted()
+        features = check_ac_matrix(features, self.n_components_)
+        dtype = np.result_type(features.dtype, np.float32)
+        back = (self.components_ * self.scale_[:, None]).T.astype(dtype)
+        out = features @ back
+        out += self.mean_.astype(dtype)
+        return out
+
+    # ------------------------------------------------------------- sizes
+    @property
+    def n_features(self) -> int:
+        self._check_fitted()
+        return int(self.n_components_)
+
+    @property
+    def n_ac_columns(self) -> int:
+        """K', the AC columns (K_in minus the DC when ``include_dc``)."""
+        self._check_fitted()
+        return self._n_in - 3 if self.include_dc else self._n_in
+
+    def n_side_parameters(self) -> int:
+        """Stored side-information values: P plus mu and sigma (eq. 30: K'M + 2K' when joint)."""
+        self._check_fitted()
+        rows = self._n_in if self.joint_rgb else self._n_in // 3
+        return rows * self.n_components_ + self._n_in * (2 if self.standardize else 1)
+
+    def compression_ratio(self, n_gaussians: int) -> float:
+        """Eq. 30 by parameter counts: (N(3 + M) + side) / (N K), K = K' + 3.
+
+        With ``include_dc`` the DC lives inside the M features (no separate 3N).
+        """
+        n = _check_n(n_gaussians)
+        dc = 0 if self.include_dc else 3
+        k = self.n_ac_columns + 3
+        return (n * (dc + self.n_features) + self.n_side_parameters()) / (n * k)
+
+    def compression_ratio_bytes(self, n_gaussians: int, feature_bytes: float = FLOAT32_BYTES) -> float:
+        """Eq. 30 from bytes: float32 DC + features of ``feature_bytes`` each + the
+        whole serialised state (:meth:`StageState.to_bytes`), over N K float32."""
+        n = _check_n(n_gaussians)
+        dc = 0 if self.include_dc else 3 * FLOAT32_BYTES
+        k = self.n_ac_columns + 3
+        side = len(self.state().to_bytes())
+        return (n * (dc + self.n_features * feature_bytes) + side) / (n * k * FLOAT32_BYTES)
+
+    # ------------------------------------------------------------- state
+    def state(self) -> StageState:
+        """P, mu (and sigma when standardising) in ``side_dtype``; settings as JSON."""
+        self._check_fitted()
+        side = SIDE_DTYPES[self.side_dtype]
+        if self.joint_rgb:
+            comps = self.components_
+        else:  # compact: each column only on its channel's rows
+            comps = np.stack([self.components_[c::3, j] for j, c in enumerate(self.component_channels_)], axis=1)
+        arrays = {"components": comps.astype(side), "mean": self.mean_.astype(side)}
+        if self.standardize:
+            arrays["scale"] = self.scale_.astype(side)
+        params: dict[str, Any] = {
+            "n_components": self.n_components_,
+            "n_input_columns": self._n_in,
+            "energy_retention": self.energy_retention if self.n_components is None else None,
+            "standardize": self.standardize,
+            "include_dc": self.include_dc,
+            "joint_rgb": self.joint_rgb,
+            "side_dtype": self.side_dtype,
+        }
+        if not self.joint_rgb:
+            params["component_channels"] = [int(c) for c in self.component_channels_]
+        return StageState(self.name, params, arrays)
+
+    @classmethod
+    def from_state(cls, state: StageState) -> "ShacPCA":
+        """Rebuild the fitted stage; raises :class:`GscodecError` on an inconsistent state."""
+        try:
+            p = state.params
+            stage = cls(
+                n_components=int(p["n_components"]), standardize=bool(p["standardize"]),
+                include_dc=bool(p["include_dc"]), joint_rgb=bool(p["joint_rgb"]), side_dtype=str(p["side_dtype"]),
+            )
+            stage.energy_retention = p.get("energy_retention")
+            n_in, m = int(p["n_input_columns"]), int(p["n_components"])
+            comps = np.asarray(state.arrays["components"], dtype=np.float64)
+            mean = np.asarray(state.arrays["mean"], dtype=np.float64)
+            scale = np.asarray(state.arrays["scale"], dtype=np.float64) if stage.standardize else np.ones(n_in)
+            if mean.shape != (n_in,) or scale.shape != (n_in,) or n_in % 3 or np.any(scale == 0):
+                raise ValueError("mean/scale")
+            if stage.joint_rgb:
+                if comps.shape != (n_in, m):
+                    raise ValueError("components")
+                full, channels = comps, None
+            else:
+                channels = np.asarray(p["component_channels"], dtype=np.int64)
+                if comps.shape != (n_in // 3, m) or channels.shape != (m,) or np.any((channels < 0) | (channels > 2)):
+                    raise ValueError("components")
+                full = np.zeros((n_in, m))
+                for j, c in enumerate(channels):
+                    full[c::3, j] = comps[:, j]
+        except (KeyError, TypeError, ValueError, ValidationError) as exc:
+            raise GscodecError(f"SHAC-PCA state is inconsistent ({exc})") from None
+        stage.components_, stage.mean_, stage.scale_ = full, mean, scale
+        stage.n_components_, stage.component_channels_, stage._n_in = m, channels, n_in
+        return stage
+
+    def _check_fitted(self) -> None:
+        if self.components_ is None:
+            raise ValidationError("this SHAC-PCA stage is not fitted yet; call fit() first")
+
+    def __repr__(self) -> str:
+        target = (
+            f"n_components={self.n_components}" if self.n_components else f"energy_retention={self.energy_retention}"
+        )
+        return (
+            f"ShacPCA({target}, standardize={self.standardize}, include_dc={self.include_dc}, "
+            f"joint_rgb={self.joint_rgb}, side_dtype={self.side_dtype!r})"
+        )
+
+
+def _sorted_eigh(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues (descending, clipped at 0) and eigenvectors with a fixed sign
+    (largest-magnitude entry positive), so a fit is reproducible."""
+    values, vectors = np.linalg.eigh(matrix)
+    values, vectors = np.clip(values[::-1], 0.0, None), vectors[:, ::-1]
+    pivot = np.argmax(np.abs(vectors), axis=0)
+    signs = np.sign(vectors[pivot, np.arange(vectors.shape[1])])
+    signs[signs == 0] = 1.0
+    return values, vectors * signs
+
+
+def _is_positive_int(value: Any) -> bool:
+    try:
+        return not isinstance(value, bool) and int(value) == value and value >= 1
+    except (TypeError, ValueError):
+        return False
+
+
+def _check_n(n_gaussians: int) -> int:
+    if int(n_gaussians) < 1:
+        raise ValidationError(f"the number of Gaussians must be positive, got {n_gaussians}")
+    return int(n_gaussians)
