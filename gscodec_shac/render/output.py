@@ -1,0 +1,38 @@
+"""Writing rendered images: 8-bit PNGs of images clipped to [0, 1]."""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+from gscodec_shac.errors import GscodecError
+
+_UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
+
+
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    """Float image -> uint8, clipped to [0, 1] and rounded to the nearest level."""
+    return (np.clip(np.asarray(image, dtype=np.float64), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def save_png(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Write an (H, W, 3) RGB float image as an 8-bit PNG (clipped); returns the path."""
+    import cv2
+
+    path = Path(path)
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise GscodecError(f"{path}: expected an (H, W, 3) RGB image, got shape {image.shape}")
+    if not cv2.imwrite(str(path), to_uint8(image)[:, :, ::-1]):
+        raise GscodecError(f"{path}: could not write the PNG (does the directory exist and is it writable?)")
+    return path
+
+
+def png_name(camera_name: str, index: int) -> str:
+    """A safe file name for a view: the camera name without an image extension, else the index."""
+    stem = Path(camera_name).stem if Path(camera_name).suffix.lower() in {".png", ".jpg", ".jpeg"} else camera_name
+    stem = _UNSAFE.sub("_", stem).strip("._")
+    return f"{stem or f'view_{index:05d}'}.png"
