@@ -10,6 +10,7 @@ bytes; the container records it.
 
 from __future__ import annotations
 
+import struct
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
@@ -54,6 +55,10 @@ class GridCodec(ABC):
         planes = np.asarray(planes)
         if planes.ndim != 3:
             raise ValidationError(f"{self.name}: planes must be (C, H, W), got shape {planes.shape}")
+        if 0 in planes.shape:
+            raise ValidationError(f"{self.name}: planes must not be empty, got shape {planes.shape}")
+        if not np.issubdtype(planes.dtype, np.integer):
+            raise ValidationError(f"{self.name}: planes must be integers, got dtype {planes.dtype}")
         if not 1 <= bit_depth <= 16:
             raise ValidationError(f"{self.name}: bit depth must be 1-16, got {bit_depth}")
         if planes.size and (planes.min() < 0 or planes.max() >= 2**bit_depth):
@@ -62,11 +67,46 @@ class GridCodec(ABC):
             raise ValidationError(f"{self.name} is lossless only; it takes no QP (got {qp})")
         return planes.astype(np.uint16, copy=False)
 
+    def _check_shape(self, shape: tuple[int, int, int], bit_depth: int) -> tuple[int, int, int]:
+        """Validate the ``shape`` and ``bit_depth`` handed to :meth:`decode`."""
+        try:
+            dims = tuple(int(d) for d in shape)
+        except (TypeError, ValueError):
+            raise ValidationError(f"{self.name}: shape must be (C, H, W) integers, got {shape!r}") from None
+        if len(dims) != 3 or min(dims) < 1:
+            raise ValidationError(f"{self.name}: shape must be three positive integers (C, H, W), got {shape!r}")
+        if not 1 <= bit_depth <= 16:
+            raise ValidationError(f"{self.name}: bit depth must be 1-16, got {bit_depth}")
+        return dims  # type: ignore[return-value]
+
     @staticmethod
     def _check_decoded(name: str, planes: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
         if tuple(planes.shape) != tuple(shape):
             raise BitstreamError(f"{name} stream decodes to shape {tuple(planes.shape)}, header says {tuple(shape)}")
         return planes
+
+
+def join_chunks(chunks: list[bytes]) -> bytes:
+    """Concatenate byte strings, each preceded by its length (uint32 little-endian)."""
+    return b"".join(struct.pack("<I", len(chunk)) + chunk for chunk in chunks)
+
+
+def split_chunks(data: bytes, count: int, name: str) -> list[bytes]:
+    """Inverse of :func:`join_chunks` for exactly ``count`` chunks; BitstreamError otherwise."""
+    view = memoryview(data)
+    chunks, offset = [], 0
+    for index in range(count):
+        if offset + 4 > len(view):
+            raise BitstreamError(f"{name} stream is truncated: chunk {index + 1} of {count} is missing")
+        (length,) = struct.unpack_from("<I", view, offset)
+        offset += 4
+        if offset + length > len(view):
+            raise BitstreamError(f"{name} stream is truncated: chunk {index + 1} of {count} runs past the end")
+        chunks.append(bytes(view[offset : offset + length]))
+        offset += length
+    if offset != len(view):
+        raise BitstreamError(f"{name} stream has {len(view) - offset} unexpected bytes after its {count} chunks")
+    return chunks
 
 
 CODECS: dict[str, type[GridCodec]] = {}

@@ -1,0 +1,347 @@
+"""``hevc``: x265 through PyAV at a fixed QP (or lossless), decoded in-process by FFmpeg.
+
+Stream layout: two bytes, ``layout id`` (0 gray, 1 yuv444, 2 frames) and the
+left ``shift`` applied to the samples, then length-prefixed Annex-B HEVC
+elementary streams (:func:`~gscodec_shac.codecs.base.join_chunks`):
+
+* ``gray``: one single-frame 4:0:0 stream per channel;
+* ``yuv444``: one single-frame 4:4:4 stream per group of three channels, channel
+  ``3g`` in Y, ``3g+1`` in Cb, ``3g+2`` in Cr; when C is not a multiple of 3 the
+  last one or two channels are coded as ``gray`` streams;
+* ``frames``: one 4:0:0 stream whose C frames are the C channels, so inter
+  prediction can exploit their correlation (one I frame, ``keyint=C``,
+  ``scenecut=0``; B frames as the preset sets them unless ``bframes`` is given).
+
+Every stream uses ``qp=Q:ipratio=1:pbratio=1`` (all frames at exactly QP Q; without
+``ipratio=1`` x265 codes an intra frame ~3 QP finer), ``info=0`` (no 2 KB settings
+text in each stream) and ``frame-threads=1`` (the output does not depend on how
+many cores the machine has); ``qp=None`` selects ``lossless=1``.
+
+Samples are coded at ``depth`` bits (8, 10 or 12; by default the smallest that
+holds ``bit_depth``). In lossy mode data of fewer bits is shifted up to ``depth``
+so a QP means the same relative error at every bit depth; lossless streams
+store the values as they are. x265 pads pictures to its 8-sample coding grid itself
+(edge replication) and writes the true size into the SPS conformance window, so
+any H, W >= 16 is coded as is; smaller planes are edge-padded to 16 here (the
+``frames`` layout: narrower than 72, see :func:`codable_size`) and cropped on
+decode. The sequence parameter set is read before decoding, so a stream that
+claims a different size, chroma format or bit depth is rejected unallocated.
+"""
+
+from __future__ import annotations
+
+import fractions
+import functools
+import re
+
+import av
+import numpy as np
+
+from gscodec_shac.codecs.base import GridCodec, join_chunks, register_codec, split_chunks
+from gscodec_shac.errors import BitstreamError, CodecUnavailableError, ValidationError
+
+LAYOUTS = ("gray", "yuv444", "frames")
+PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow", "placebo")
+TUNES = ("psnr", "ssim", "grain", "fastdecode", "zerolatency", "animation")
+_GRAY_FMT = {8: "gray", 10: "gray10le", 12: "gray12le"}
+_YUV444_FMT = {8: "yuv444p", 10: "yuv444p10le", 12: "yuv444p12le"}
+_QUIET = "info=0:log-level=error"
+
+
+@register_codec
+class HevcCodec(GridCodec):
+    """x265 HEVC at a fixed QP or lossless, one of three layouts.
+
+    Options: ``layout`` (``"gray"``, ``"yuv444"`` or ``"frames"``), ``preset``
+    (x265 preset, default ``"slow"``; ``"medium"`` is 2-3x faster and 1-4% larger
+    in BD-rate), ``tune`` (x265 tune or ``None``; default ``"psnr"``, 3-12% smaller
+    than no tune at equal PSNR on attribute grids: docs/benchmarks_codecs.md),
+    ``depth`` (8, 10, 12 or ``None`` = smallest holding the data), ``bframes``
+    (``frames`` layout only; ``None`` = the preset's) and ``threads`` (x265
+    worker threads; ``None`` = all cores; the bytes do not depend on it).
+    """
+
+    name = "hevc"
+
+    def __init__(
+        self,
+        layout: str = "gray",
+        preset: str = "slow",
+        tune: str | None = "psnr",
+        depth: int | None = None,
+        bframes: int | None = None,
+        threads: int | None = None,
+    ) -> None:
+        if layout not in LAYOUTS:
+            raise ValidationError(f"hevc: layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
+        if preset not in PRESETS:
+            raise ValidationError(f"hevc: preset must be one of {', '.join(PRESETS)}, got {preset!r}")
+        if tune is not None and tune not in TUNES:
+            raise ValidationError(f"hevc: tune must be None or one of {', '.join(TUNES)}, got {tune!r}")
+        if depth is not None and depth not in _GRAY_FMT:
+            raise ValidationError(f"hevc: depth must be 8, 10, 12 or None, got {depth!r}")
+        if bframes is not None and not (isinstance(bframes, int) and 0 <= bframes <= 16):
+            raise ValidationError(f"hevc: bframes must be an integer 0-16 or None, got {bframes!r}")
+        if threads is not None and not (isinstance(threads, int) and threads >= 1):
+            raise ValidationError(f"hevc: threads must be a positive integer or None, got {threads!r}")
+        super().__init__(layout=layout, preset=preset, tune=tune, depth=depth, bframes=bframes, threads=threads)
+        self.layout, self.preset, self.tune = layout, preset, tune
+        self.depth, self.bframes, self.threads = depth, bframes, threads
+
+    @classmethod
+    def check_available(cls) -> None:
+        if "libx265" not in av.codecs_available or "hevc" not in av.codecs_available:
+            raise CodecUnavailableError(
+                "hevc needs PyAV built with libx265 and the hevc decoder: `pip install av` "
+                "(the PyPI wheels bundle both)"
+            )
+
+    def version(self) -> str:
+        libavcodec = ".".join(map(str, av.library_versions["libavcodec"]))
+        return f"{x265_version()} (PyAV {av.__version__}, libavcodec {libavcodec})"
+
+    # ------------------------------------------------------------------ encode
+    def encode(self, planes: np.ndarray, bit_depth: int, qp: int | None) -> bytes:
+        planes = self._check_planes(planes, bit_depth, qp)
+        check_qp(self.name, qp)
+        depth = coding_depth(self.name, bit_depth, self.depth)
+        shift = 0 if qp is None else depth - bit_depth
+        grid = pad_to_codable(planes << shift if shift else planes, self.layout)
+        streams = []
+        for first, n_frames, chroma in stream_plan(self.layout, len(grid)):
+            if chroma:
+                streams.append(self._encode_stream([grid[first : first + 3]], _YUV444_FMT[depth], qp, ""))
+                continue
+            gop = ""
+            if n_frames > 1:  # the frames layout: one I frame, then inter frames
+                gop = f":keyint={n_frames}:min-keyint={n_frames}:scenecut=0"
+                gop += f":bframes={self.bframes}" if self.bframes is not None else ""
+            streams.append(self._encode_stream(list(grid[first : first + n_frames]), _GRAY_FMT[depth], qp, gop))
+        return bytes([LAYOUTS.index(self.layout), shift]) + join_chunks(streams)
+
+    def _encode_stream(self, frames: list[np.ndarray], pix_fmt: str, qp: int | None, extra: str) -> bytes:
+        """Encode frames ((H, W) or (3, H, W) arrays) into one Annex-B stream."""
+        rate = f"qp={int(qp)}:ipratio=1:pbratio=1" if qp is not None else "lossless=1"
+        params = f"{rate}:{_QUIET}:frame-threads=1{extra}"
+        if self.threads is not None:
+            params += f":pools={self.threads}"
+        options = {"preset": self.preset, "x265-params": params}
+        if self.tune is not None:
+            options["tune"] = self.tune
+        height, width = frames[0].shape[-2:]
+        try:
+            ctx = av.CodecContext.create("libx265", "w")
+            ctx.width, ctx.height, ctx.pix_fmt = width, height, pix_fmt
+            ctx.time_base = fractions.Fraction(1, 25)
+            ctx.options = options
+            packets = []
+            for index, array in enumerate(frames):
+                frame = _frame_from_planes(array.reshape((-1, height, width)), pix_fmt)
+                frame.pts = index
+                packets += ctx.encode(frame)
+            packets += ctx.encode(None)
+        except av.FFmpegError as exc:
+            raise ValidationError(
+                f"hevc: x265 refused the settings {options} for a {width}x{height} {pix_fmt} frame: {exc}"
+            ) from None
+        return b"".join(bytes(packet) for packet in packets)
+
+    # ------------------------------------------------------------------ decode
+    def decode(self, data: bytes, shape: tuple[int, int, int], bit_depth: int) -> np.ndarray:
+        channels, height, width = self._check_shape(shape, bit_depth)
+        if len(data) < 2 or data[0] >= len(LAYOUTS):
+            raise BitstreamError("hevc stream is corrupt (unknown layout byte)")
+        layout, shift = LAYOUTS[data[0]], data[1]
+        coded_h, coded_w = codable_size(height, width, layout)
+        plan = stream_plan(layout, channels)
+        out = np.empty((channels, coded_h, coded_w), dtype=np.uint16)
+        depths = set()
+        streams = split_chunks(data[2:], len(plan), self.name)
+        for index, (stream, (first, n_frames, chroma)) in enumerate(zip(streams, plan)):
+            depths.add(check_sps(stream, coded_w, coded_h, chroma, index))
+            frames = _decode_stream(stream, index)
+            if len(frames) != n_frames:
+                raise BitstreamError(f"hevc stream {index} holds {len(frames)} frames, expected {n_frames}")
+            step = 3 if chroma else 1
+            for k, frame in enumerate(frames):
+                start = first + k * step
+                out[start : start + step] = _planes_from_frame(frame, index, coded_h, coded_w, chroma)
+        planes = restore_samples(out[:, :height, :width], depths, shift, bit_depth)
+        return self._check_decoded(self.name, planes, shape)
+
+
+# ------------------------------------------------- helpers (shared with ``hm``)
+def check_qp(name: str, qp: int | None) -> None:
+    """HEVC QPs are integers 0-51; ``None`` means lossless."""
+    if qp is not None and not (isinstance(qp, (int, np.integer)) and not isinstance(qp, bool) and 0 <= qp <= 51):
+        raise ValidationError(f"{name}: qp must be an integer 0-51 or None (lossless), got {qp!r}")
+
+
+def coding_depth(name: str, bit_depth: int, depth: int | None) -> int:
+    """The bit depth to code at: ``depth``, or the smallest of 8/10/12 holding ``bit_depth``."""
+    if bit_depth > 12:
+        raise ValidationError(
+            f"{name} codes at most 12 bits per sample, got {bit_depth}; split wider data into 8-bit planes"
+        )
+    chosen = depth or min(d for d in _GRAY_FMT if d >= bit_depth)
+    if chosen < bit_depth:
+        raise ValidationError(f"{name}: depth {chosen} cannot hold {bit_depth}-bit samples")
+    return chosen
+
+
+def restore_samples(planes: np.ndarray, depths: set[int], shift: int, bit_depth: int) -> np.ndarray:
+    """Undo the encoder's left shift (rounding, clipping) and check the value range."""
+    depth = depths.pop() if len(depths) == 1 else None
+    if depth is None or depth < bit_depth or shift not in (0, depth - bit_depth):
+        raise BitstreamError(f"hevc stream at {depth} bits with shift {shift} cannot hold {bit_depth}-bit samples")
+    if shift:
+        planes = np.minimum((planes.astype(np.uint32) + (1 << (shift - 1))) >> shift, 2**bit_depth - 1)
+    elif int(planes.max()) >= 2**bit_depth:  # no shift although depth > bit_depth: a lossless stream
+        raise BitstreamError(f"hevc stream holds values above {bit_depth} bits")
+    return np.ascontiguousarray(planes, dtype=np.uint16)
+
+
+def stream_plan(layout: str, channels: int) -> list[tuple[int, int, int]]:
+    """The streams a layout makes: (first channel, frames, chroma format 0 or 3) each."""
+    if layout == "frames":
+        return [(0, channels, 0)]
+    full = channels // 3 if layout == "yuv444" else 0
+    return [(3 * g, 1, 3) for g in range(full)] + [(c, 1, 0) for c in range(3 * full, channels)]
+
+
+def codable_size(height: int, width: int, layout: str = "gray") -> tuple[int, int]:
+    """The picture size coded for (height, width) planes: at least 16 x 16 (x265's minimum).
+
+    Other sizes need no padding here: x265 pads to its coding-unit grid itself
+    (replicating edges) and signals the true size in the SPS conformance window,
+    which the decoder crops to; the SPS check then verifies the exact size.
+    The ``frames`` layout is at least 72 wide: inter-coded x265 4.2 streams of
+    pictures 16, 32 or 64 samples wide were not reproducible and sometimes did
+    not decode to the encoder's pictures (found by tests/test_codecs.py; widths
+    from 72 up were always exact).
+    """
+    return max(16, height), max(72 if layout == "frames" else 16, width)
+
+
+def pad_to_codable(planes: np.ndarray, layout: str = "gray") -> np.ndarray:
+    """Edge-replicate (C, H, W) planes to :func:`codable_size`."""
+    height, width = planes.shape[1:]
+    coded_h, coded_w = codable_size(height, width, layout)
+    if (coded_h, coded_w) == (height, width):
+        return planes
+    return np.pad(planes, ((0, 0), (0, coded_h - height), (0, coded_w - width)), mode="edge")
+
+
+def _plane_view(plane: "av.video.plane.VideoPlane", itemsize: int) -> np.ndarray:
+    """Writable (height, width) view of a frame plane (skipping the line padding)."""
+    dtype = np.uint16 if itemsize == 2 else np.uint8
+    rows = np.frombuffer(plane, dtype=dtype).reshape(plane.height, plane.line_size // itemsize)
+    return rows[:, : plane.width]
+
+
+def _frame_from_planes(planes: np.ndarray, pix_fmt: str) -> av.VideoFrame:
+    """A VideoFrame whose planes (Y or Y/Cb/Cr) are filled from (1 or 3, H, W) arrays."""
+    frame = av.VideoFrame(planes.shape[2], planes.shape[1], pix_fmt)
+    itemsize = 1 if pix_fmt in ("gray", "yuv444p") else 2
+    for plane, source in zip(frame.planes, planes):
+        _plane_view(plane, itemsize)[...] = source
+    return frame
+
+
+def _planes_from_frame(frame: av.VideoFrame, index: int, height: int, width: int, chroma: int) -> np.ndarray:
+    """(1 or 3, H, W) uint16 samples of a decoded frame, checking its format and size."""
+    expected = _YUV444_FMT if chroma else _GRAY_FMT
+    if frame.format.name not in expected.values() or (frame.height, frame.width) != (height, width):
+        raise BitstreamError(
+            f"hevc stream {index} decodes to {frame.width}x{frame.height} {frame.format.name}, "
+            f"expected {width}x{height}"
+        )
+    itemsize = 1 if frame.format.name in ("gray", "yuv444p") else 2
+    return np.stack([_plane_view(plane, itemsize) for plane in frame.planes]).astype(np.uint16)
+
+
+def _decode_stream(stream: bytes, index: int) -> list[av.VideoFrame]:
+    """All frames of one Annex-B stream, in output order."""
+    try:
+        ctx = av.CodecContext.create("hevc", "r")
+        frames = []
+        for packet in ctx.parse(stream) + ctx.parse(None):
+            frames += ctx.decode(packet)
+        frames += ctx.decode(None)
+    except (av.FFmpegError, ValueError) as exc:
+        raise BitstreamError(f"hevc stream {index} is corrupt: {exc}") from None
+    return frames
+
+
+@functools.lru_cache(maxsize=1)
+def x265_version() -> str:
+    """x265's version as it writes it into a stream's info SEI (encodes one 16x16 frame once)."""
+    ctx = av.CodecContext.create("libx265", "w")
+    ctx.width = ctx.height = 16
+    ctx.pix_fmt, ctx.time_base = "gray", fractions.Fraction(1, 25)
+    ctx.options = {"preset": "ultrafast", "x265-params": "log-level=error"}
+    frame = _frame_from_planes(np.zeros((1, 16, 16), np.uint16), "gray")
+    stream = b"".join(bytes(p) for p in ctx.encode(frame) + ctx.encode(None))
+    match = re.search(rb"x265 \(build \d+\) - ([0-9][\w.+-]*)", stream)
+    return f"x265 {match.group(1).decode()}" if match else "x265 (version unknown)"
+
+
+# ------------------------------------------------------------- SPS inspection
+class _Bits:
+    """MSB-first bit reader over an RBSP with Exp-Golomb codes."""
+
+    def __init__(self, data: bytes) -> None:
+        self.data, self.pos = data, 0
+
+    def u(self, n: int) -> int:
+        value = 0
+        for _ in range(n):
+            if self.pos >= 8 * len(self.data):
+                raise BitstreamError("hevc sequence parameter set is truncated")
+            value = (value << 1) | ((self.data[self.pos >> 3] >> (7 - (self.pos & 7))) & 1)
+            self.pos += 1
+        return value
+
+    def ue(self) -> int:
+        zeros = 0
+        while self.u(1) == 0:
+            zeros += 1
+            if zeros > 31:
+                raise BitstreamError("hevc sequence parameter set is corrupt (bad Exp-Golomb code)")
+        return (1 << zeros) - 1 + self.u(zeros)
+
+
+def check_sps(stream: bytes, width: int, height: int, chroma: int, index: int) -> int:
+    """Check every SPS in an Annex-B stream against the expected picture; return its bit depth."""
+    depths = []
+    for nal in re.split(b"\x00\x00\x01", stream)[1:]:
+        if len(nal) < 2 or (nal[0] >> 1) & 0x3F != 33:  # 33: sequence parameter set
+            continue
+        bits = _Bits(nal[2:].replace(b"\x00\x00\x03", b"\x00\x00"))
+        bits.u(4)  # sps_video_parameter_set_id
+        sub_layers = bits.u(3)
+        bits.u(1)
+        bits.u(88 + 8)  # general profile/tier/flags and level
+        present = [(bits.u(1), bits.u(1)) for _ in range(sub_layers)]
+        if sub_layers:
+            bits.u(2 * (8 - sub_layers))
+        for profile, level in present:
+            bits.u(88 * profile + 8 * level)
+        bits.ue()  # sps_seq_parameter_set_id
+        chroma_format = bits.ue()
+        if chroma_format == 3:
+            bits.u(1)  # separate_colour_plane_flag
+        coded_w, coded_h = bits.ue(), bits.ue()
+        if bits.u(1):  # conformance window (4:0:0 and 4:4:4 crop in luma samples)
+            left, right, top, bottom = bits.ue(), bits.ue(), bits.ue(), bits.ue()
+            coded_w, coded_h = coded_w - left - right, coded_h - top - bottom
+        depth = bits.ue() + 8
+        if (coded_w, coded_h, chroma_format) != (width, height, chroma) or depth not in _GRAY_FMT:
+            raise BitstreamError(
+                f"hevc stream {index} is a {coded_w}x{coded_h} picture (chroma format {chroma_format}, "
+                f"{depth} bits), expected {width}x{height} with chroma format {chroma}"
+            )
+        depths.append(depth)
+    if not depths or len(set(depths)) != 1:
+        raise BitstreamError(f"hevc stream {index} has no usable sequence parameter set")
+    return depths[0]
