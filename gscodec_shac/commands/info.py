@@ -1,24 +1,34 @@
-"""``gscodec-shac info FILE``: what a 3DGS PLY holds and where its bytes go."""
+"""``gscodec-shac info FILE``: what a 3DGS PLY or a .gsc file holds and where its bytes go."""
 
 from __future__ import annotations
 
 import argparse
 import json
+from typing import Any
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "info",
-        help="describe a 3DGS PLY (count, SH degree, ranges, SH share of the size)",
-        description="Describe a 3DGS PLY: Gaussian count, SH degree, per-attribute ranges, "
-        "bytes per Gaussian and the SH share of them.",
+        help="describe a 3DGS PLY or a .gsc file (count, SH degree, where the bytes go)",
+        description="Describe a 3DGS PLY (Gaussian count, SH degree, per-attribute ranges, bytes per "
+        "Gaussian, SH share) or a .gsc file (header summary, bytes and bits per Gaussian per attribute).",
     )
-    parser.add_argument("file", help="an Inria 3DGS .ply")
+    parser.add_argument("file", help="an Inria 3DGS .ply or a .gsc file")
     parser.add_argument("--json", action="store_true", help="print JSON instead of text")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from gscodec_shac.bitstream import is_gsc
+
+    if is_gsc(args.file):
+        from gscodec_shac.bitstream import Bitstream
+
+        summary = describe_gsc(Bitstream.read(args.file), args.file)
+        print(json.dumps(summary, indent=2) if args.json else format_gsc_summary(summary))
+        return 0
+
     from gscodec_shac.io.ply import read_ply
     from gscodec_shac.summary import describe_cloud, format_cloud_summary
 
@@ -26,3 +36,70 @@ def run(args: argparse.Namespace) -> int:
     summary = describe_cloud(cloud, args.file)
     print(json.dumps(summary, indent=2) if args.json else format_cloud_summary(summary))
     return 0
+
+
+def describe_gsc(stream: Any, path: str) -> dict[str, Any]:
+    """A JSON-serialisable summary of a parsed .gsc :class:`~gscodec_shac.bitstream.Bitstream`."""
+    header = stream.header
+    n = int(header.get("num_gaussians", 0)) or 1
+    total = stream.total_bytes()
+    grid = header.get("grid", {})
+    sh = header.get("sh") or {}
+    return {
+        "file": str(path),
+        "bytes": total,
+        "format_version": "%d.%d" % stream.version,
+        "producer": header.get("producer"),
+        "num_gaussians": header.get("num_gaussians"),
+        "input_gaussians": header.get("input_gaussians"),
+        "pruned": header.get("prune", {}).get("pruned", 0),
+        "dropped": grid.get("dropped", 0),
+        "sh_degree": header.get("sh_degree"),
+        "sh_stage": sh.get("stage"),
+        "sh_features": sh.get("features"),
+        "grid": f"{grid.get('height')}x{grid.get('width')}",
+        "sort": grid.get("sort", {}).get("method"),
+        "padding": grid.get("padding"),
+        "color": header.get("color"),
+        "rate_point": header.get("rate_point", {}).get("name"),
+        "bits_per_gaussian": 8.0 * total / n,
+        "attributes": {name: {"bytes": size, "bits_per_gaussian": 8.0 * size / n}
+                       for name, size in stream.attribute_sizes().items()},
+        "chunks": [
+            {"name": c.name, "bytes": len(c.data), "attribute": c.meta.get("attribute"), "bits": c.meta.get("bits"),
+             "qp": c.meta.get("qp"), "codec": _codec_name(header, c.meta.get("codec"))}
+            for c in stream.chunks
+        ],
+    }
+
+
+def format_gsc_summary(summary: dict[str, Any]) -> str:
+    """Human-readable lines for :func:`describe_gsc`."""
+    lines = [
+        f"file              {summary['file']} ({summary['bytes']:,} bytes, .gsc format {summary['format_version']}, "
+        f"{summary['producer']})",
+        f"Gaussians         {summary['num_gaussians']:,} (input {summary['input_gaussians']:,}; "
+        f"pruned {summary['pruned']:,}, dropped {summary['dropped']:,})",
+        f"SH                degree {summary['sh_degree']}, stage {summary['sh_stage']}"
+        + (f" ({summary['sh_features']} features)" if summary["sh_features"] else ""),
+        f"grid              {summary['grid']}, sort {summary['sort']}, padding {summary['padding']}, colour {summary['color']}",
+        f"rate point        {summary['rate_point']}",
+        f"bits per Gaussian {summary['bits_per_gaussian']:.3f}",
+        "attribute                 bytes   share  bits/Gaussian",
+    ]
+    for name, info in summary["attributes"].items():
+        share = 100.0 * info["bytes"] / summary["bytes"]
+        lines.append(f"  {name:<16} {info['bytes']:>12,} {share:>6.1f}% {info['bits_per_gaussian']:>13.3f}")
+    lines.append("chunk                     bytes  bits  QP    codec")
+    for chunk in summary["chunks"]:
+        qp = "-" if chunk["qp"] is None else str(chunk["qp"])
+        bits = "-" if chunk["bits"] is None else str(chunk["bits"])
+        lines.append(f"  {chunk['name']:<16} {chunk['bytes']:>12,} {bits:>5} {qp:>3}   {chunk['codec'] or '-'}")
+    return "\n".join(lines)
+
+
+def _codec_name(header: dict, index: Any) -> str | None:
+    table = header.get("codecs") or []
+    if isinstance(index, int) and 0 <= index < len(table) and isinstance(table[index], dict):
+        return str(table[index].get("name"))
+    return None

@@ -1,0 +1,229 @@
+"""The ``.gsc`` container: one self-describing file per compressed scene.
+
+Layout (all integers little-endian)::
+
+    offset  size  field
+    0       8     magic  b"\\x89GSC\\r\\n\\x1a\\n"  (catches text-mode mangling, like PNG's)
+    8       2     format major version (a decoder refuses other majors)
+    10      2     format minor version (additions an older decoder may ignore)
+    12      4     header length H in bytes
+    16      4     CRC32 of the header bytes
+    20      H     header: UTF-8 JSON object; ``header["chunks"]`` is the chunk table
+    20+H    ...   chunk payloads, back to back, in chunk-table order; nothing after
+
+Each chunk-table entry is ``{"name", "size", "crc32", ...}`` plus whatever the
+writer records about the chunk (codec name/version/options, plane shape, bit
+depth, QP, attribute). The payload sizes must add up to the file length exactly,
+so a truncated file or trailing bytes are detected before any payload is used.
+
+:meth:`Bitstream.from_bytes` raises exactly one :class:`BitstreamError` for
+anything wrong (foreign file, unknown version, truncation, CRC mismatch,
+malformed table) and allocates nothing larger than the file itself.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import tempfile
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from gscodec_shac.errors import BitstreamError
+
+MAGIC = b"\x89GSC\r\n\x1a\n"
+FORMAT_MAJOR = 1
+FORMAT_MINOR = 0
+_PREAMBLE = struct.Struct("<8sHHII")
+PREAMBLE_SIZE = _PREAMBLE.size  # 20
+#: The largest header a decoder reads (a real one is a few KiB).
+MAX_HEADER_BYTES = 16 << 20
+_MAX_CHUNKS = 4096
+
+
+@dataclass
+class Chunk:
+    """One named payload and what the writer records about it."""
+
+    name: str
+    data: bytes
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def table_entry(self) -> dict[str, Any]:
+        return {"name": self.name, "size": len(self.data), "crc32": zlib.crc32(self.data), **self.meta}
+
+
+@dataclass
+class Bitstream:
+    """A header (JSON-serialisable dict) and an ordered list of named chunks."""
+
+    header: dict[str, Any] = field(default_factory=dict)
+    chunks: list[Chunk] = field(default_factory=list)
+    #: (major, minor) format version read from a file; new streams get the current one.
+    version: tuple[int, int] = (FORMAT_MAJOR, FORMAT_MINOR)
+
+    # ----------------------------------------------------------- building
+    def add_chunk(self, name: str, data: bytes, **meta: Any) -> Chunk:
+        """Append a chunk; names are unique."""
+        if any(c.name == name for c in self.chunks):
+            raise ValueError(f"duplicate chunk name {name!r}")
+        chunk = Chunk(name, bytes(data), meta)
+        self.chunks.append(chunk)
+        return chunk
+
+    def chunk(self, name: str) -> Chunk:
+        """The chunk called ``name``; :class:`BitstreamError` when absent."""
+        for chunk in self.chunks:
+            if chunk.name == name:
+                return chunk
+        raise BitstreamError(f"corrupt .gsc file: chunk {name!r} is missing")
+
+    def has_chunk(self, name: str) -> bool:
+        return any(c.name == name for c in self.chunks)
+
+    # ------------------------------------------------------- serialisation
+    def header_bytes(self) -> bytes:
+        header = dict(self.header)
+        header["chunks"] = [c.table_entry() for c in self.chunks]
+        return json.dumps(header, separators=(",", ":"), sort_keys=False, allow_nan=False).encode("utf-8")
+
+    def to_bytes(self) -> bytes:
+        header = self.header_bytes()
+        preamble = _PREAMBLE.pack(MAGIC, FORMAT_MAJOR, FORMAT_MINOR, len(header), zlib.crc32(header))
+        return b"".join([preamble, header, *(c.data for c in self.chunks)])
+
+    @classmethod
+    def from_bytes(cls, data: bytes | bytearray | memoryview) -> "Bitstream":
+        """Parse and verify a container (see module docstring); one BitstreamError on failure."""
+        data = bytes(data)
+        if len(data) < PREAMBLE_SIZE:
+            if data[: len(MAGIC)] == MAGIC[: len(data)] and data:
+                raise BitstreamError(f"truncated .gsc file ({len(data)} bytes, shorter than its preamble)")
+            raise BitstreamError("not a .gsc file (too short to hold a preamble)")
+        magic, major, minor, header_len, header_crc = _PREAMBLE.unpack_from(data)
+        if magic != MAGIC:
+            raise BitstreamError("not a .gsc file (bad magic)")
+        if major != FORMAT_MAJOR:
+            raise BitstreamError(
+                f"unsupported .gsc format version {major}.{minor}; this decoder reads {FORMAT_MAJOR}.x"
+            )
+        if header_len > MAX_HEADER_BYTES:
+            raise BitstreamError(f"corrupt .gsc file: header length {header_len} exceeds {MAX_HEADER_BYTES}")
+        if PREAMBLE_SIZE + header_len > len(data):
+            raise BitstreamError(
+                f"truncated .gsc file: header needs {header_len} bytes, {len(data) - PREAMBLE_SIZE} remain"
+            )
+        raw_header = data[PREAMBLE_SIZE : PREAMBLE_SIZE + header_len]
+        if zlib.crc32(raw_header) != header_crc:
+            raise BitstreamError("corrupt .gsc file: header CRC32 mismatch")
+        try:
+            header = json.loads(raw_header.decode("utf-8"))
+        except (UnicodeDecodeError, ValueError):
+            raise BitstreamError("corrupt .gsc file: header is not valid JSON") from None
+        if not isinstance(header, dict):
+            raise BitstreamError("corrupt .gsc file: header is not a JSON object")
+        table = header.pop("chunks", None)
+        entries = _check_table(table)
+        offset = PREAMBLE_SIZE + header_len
+        payload_total = sum(size for _, size, _, _ in entries)
+        remaining = len(data) - offset
+        if payload_total > remaining:
+            raise BitstreamError(
+                f"truncated .gsc file: chunks need {payload_total:,} bytes, {remaining:,} remain"
+            )
+        if payload_total < remaining:
+            raise BitstreamError(f"corrupt .gsc file: {remaining - payload_total:,} unexpected bytes after the last chunk")
+        chunks = []
+        for name, size, crc, meta in entries:
+            payload = data[offset : offset + size]
+            if zlib.crc32(payload) != crc:
+                raise BitstreamError(f"corrupt .gsc file: CRC32 mismatch in chunk {name!r}")
+            chunks.append(Chunk(name, payload, meta))
+            offset += size
+        return cls(header, chunks, (major, minor))
+
+    # ------------------------------------------------------------- files
+    def write(self, path: str | os.PathLike) -> int:
+        """Write atomically (temporary file renamed into place); returns the byte count."""
+        data = self.to_bytes()
+        write_atomic(path, data)
+        return len(data)
+
+    @classmethod
+    def read(cls, path: str | os.PathLike) -> "Bitstream":
+        path = Path(path)
+        if not path.is_file():
+            raise BitstreamError(f"{path}: no such file")
+        try:
+            return cls.from_bytes(path.read_bytes())
+        except BitstreamError as exc:
+            raise BitstreamError(f"{path}: {exc}") from None
+
+    # ------------------------------------------------------------- sizes
+    def total_bytes(self) -> int:
+        return PREAMBLE_SIZE + len(self.header_bytes()) + sum(len(c.data) for c in self.chunks)
+
+    def sizes(self) -> dict[str, int]:
+        """Bytes per part: ``"header"`` (preamble + JSON header) then each chunk by name."""
+        out = {"header": PREAMBLE_SIZE + len(self.header_bytes())}
+        out.update({c.name: len(c.data) for c in self.chunks})
+        return out
+
+    def attribute_sizes(self) -> dict[str, int]:
+        """Bytes per attribute (chunks grouped by their ``attribute`` entry), header included."""
+        out: dict[str, int] = {"header": PREAMBLE_SIZE + len(self.header_bytes())}
+        for chunk in self.chunks:
+            key = str(chunk.meta.get("attribute", chunk.name))
+            out[key] = out.get(key, 0) + len(chunk.data)
+        return out
+
+
+def is_gsc(path: str | os.PathLike) -> bool:
+    """True when the file starts with the ``.gsc`` magic."""
+    try:
+        with open(path, "rb") as handle:
+            return handle.read(len(MAGIC)) == MAGIC
+    except OSError:
+        return False
+
+
+def write_atomic(path: str | os.PathLike, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file in the same directory."""
+    path = Path(path)
+    directory = path.parent if str(path.parent) else Path(".")
+    if not directory.is_dir():
+        raise BitstreamError(f"{path}: output directory {directory} does not exist")
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
+        os.replace(tmp_name, path)
+    except BaseException:
+        if os.path.exists(tmp_name):
+            os.unlink(tmp_name)
+        raise
+
+
+def _check_table(table: Any) -> list[tuple[str, int, int, dict[str, Any]]]:
+    """Validate the chunk table; returns (name, size, crc, meta) per entry."""
+    if not isinstance(table, list):
+        raise BitstreamError("corrupt .gsc file: header has no chunk table")
+    if len(table) > _MAX_CHUNKS:
+        raise BitstreamError(f"corrupt .gsc file: {len(table)} chunks (at most {_MAX_CHUNKS})")
+    entries, seen = [], set()
+    for index, entry in enumerate(table):
+        if not isinstance(entry, dict):
+            raise BitstreamError(f"corrupt .gsc file: chunk table entry {index} is not an object")
+        name, size, crc = entry.get("name"), entry.get("size"), entry.get("crc32")
+        if not isinstance(name, str) or not name or name in seen:
+            raise BitstreamError(f"corrupt .gsc file: chunk table entry {index} has a bad or repeated name")
+        for key, value, top in (("size", size, 1 << 40), ("crc32", crc, 1 << 32)):
+            if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value < top:
+                raise BitstreamError(f"corrupt .gsc file: chunk {name!r} has a bad {key}")
+        seen.add(name)
+        meta = {k: v for k, v in entry.items() if k not in ("name", "size", "crc32")}
+        entries.append((name, size, crc, meta))
+    return entries

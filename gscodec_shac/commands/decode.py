@@ -1,0 +1,29 @@
+"""``gscodec-shac decode IN.gsc OUT.ply``: decompress a .gsc file to an Inria 3DGS PLY."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "decode",
+        help="decompress a .gsc file into a 3DGS PLY any viewer opens",
+        description="Decode a .gsc file into an Inria 3DGS PLY (written atomically).",
+    )
+    parser.add_argument("input", help="input .gsc")
+    parser.add_argument("output", help="output .ply")
+    parser.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from gscodec_shac.pipeline import decode_file
+
+    summary = decode_file(args.input, args.output, progress=not args.quiet and sys.stderr.isatty())
+    print(
+        f"wrote {summary['output']}: {summary['num_gaussians']:,} Gaussians, SH degree {summary['sh_degree']}, "
+        f"from {summary['bytes']:,} bytes in {summary['seconds']:.2f} s"
+    )
+    return 0

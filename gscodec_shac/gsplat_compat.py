@@ -1,0 +1,166 @@
+"""Drop-in use inside gsplat-style code: splats dicts in, splats dicts out.
+
+gsplat keeps a model as a dict of tensors::
+
+    means (N, 3)   scales (N, 3) log   quats (N, 4) wxyz   opacities (N,) logits
+    sh0 (N, 1, 3)  shN (N, K-1, 3)     (torch tensors; numpy arrays work too)
+
+:class:`ShacCompression` has the two methods of gsplat's ``PngCompression``
+(``compress(compress_dir, splats)`` and ``decompress(compress_dir) -> splats``)
+and writes one ``splats.gsc`` file, so a gsplat training script swaps it in
+with one line (gsplat itself is not needed)::
+
+    from gscodec_shac.gsplat_compat import ShacCompression
+
+    # was: compression_method = PngCompression()
+    compression_method = ShacCompression("gsplat_png", sh="pca", sh_params={"energy_retention": 0.99})
+    compression_method.compress(compress_dir, runner.splats)
+    splats = compression_method.decompress(compress_dir)   # dict of CPU tensors, grid order
+
+The SH stages also work on the dict (or on plain (N, K-1, 3) arrays) without
+the codec, e.g. to apply SHAC-PCA before gsplat's own k-means::
+
+    stage = fit_sh_stage("pca", splats, energy_retention=0.99)
+    features = sh_features(stage, splats)            # (N, M) what a codec would code
+    splats["shN"] = sh_from_features(stage, features, like=splats["shN"])
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from gscodec_shac import sh_index
+from gscodec_shac.bitstream import Bitstream
+from gscodec_shac.errors import ValidationError
+from gscodec_shac.gaussians import GaussianCloud
+from gscodec_shac.shac.base import ShStage, make_stage
+
+SPLAT_KEYS = ("means", "scales", "quats", "opacities", "sh0", "shN")
+
+
+# --------------------------------------------------------------- conversions
+def to_numpy(value: Any) -> np.ndarray:
+    """A torch tensor (any device) or array-like -> numpy float32."""
+    if hasattr(value, "detach"):
+        value = value.detach().cpu().numpy()
+    return np.ascontiguousarray(value, dtype=np.float32)
+
+
+def splats_to_cloud(splats: Mapping[str, Any]) -> GaussianCloud:
+    """A gsplat splats dict -> :class:`GaussianCloud` (same rows, same order)."""
+    missing = [k for k in SPLAT_KEYS if k not in splats]
+    if missing:
+        raise ValidationError(f"splats dict lacks {', '.join(missing)} (needs {', '.join(SPLAT_KEYS)})")
+    extra = sorted(set(splats) - set(SPLAT_KEYS))
+    if extra:
+        raise ValidationError(f"splats dict has keys this codec does not code: {', '.join(extra)}")
+    sh0 = to_numpy(splats["sh0"])
+    if sh0.ndim != 3 or sh0.shape[1:] != (1, 3):
+        raise ValidationError(f"sh0 must have shape (N, 1, 3), got {sh0.shape}")
+    return GaussianCloud(
+        means=to_numpy(splats["means"]),
+        scales=to_numpy(splats["scales"]),
+        quats=to_numpy(splats["quats"]),
+        opacities=to_numpy(splats["opacities"]).reshape(-1),
+        sh_dc=sh0[:, 0, :],
+        sh_rest=to_numpy(splats["shN"]),
+    )
+
+
+def cloud_to_splats(cloud: GaussianCloud, *, as_torch: bool | None = None) -> dict[str, Any]:
+    """:class:`GaussianCloud` -> gsplat splats dict (torch CPU tensors when torch imports, unless ``as_torch=False``)."""
+    arrays = {
+        "means": cloud.means,
+        "scales": cloud.scales,
+        "quats": cloud.quats,
+        "opacities": cloud.opacities,
+        "sh0": cloud.sh_dc[:, None, :],
+        "shN": cloud.sh_rest,
+    }
+    if as_torch is None:
+        try:
+            import torch  # noqa: F401
+
+            as_torch = True
+        except ImportError:
+            as_torch = False
+    if not as_torch:
+        return {k: np.ascontiguousarray(v) for k, v in arrays.items()}
+    import torch
+
+    return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in arrays.items()}
+
+
+# ------------------------------------------------------------------ SH stages
+def _ac(source: Mapping[str, Any] | Any) -> np.ndarray:
+    """AC matrix (N, K') from a splats dict, an (N, K-1, 3) shN array or an (N, K') matrix."""
+    sh = source["shN"] if isinstance(source, Mapping) else source
+    array = to_numpy(sh)
+    if array.ndim == 3:
+        return sh_index.ac_matrix(array)
+    if array.ndim == 2:
+        return array
+    raise ValidationError(f"expected shN (N, K-1, 3) or an AC matrix (N, K'), got shape {array.shape}")
+
+
+def fit_sh_stage(stage: str | ShStage, source: Mapping[str, Any] | Any, **params: Any) -> ShStage:
+    """Fit an SH stage (by name with ``params``, or an instance) on a splats dict or an SH array."""
+    stage = make_stage(stage, **params) if isinstance(stage, str) else stage
+    return stage.fit(_ac(source))
+
+
+def sh_features(stage: ShStage, source: Mapping[str, Any] | Any) -> np.ndarray:
+    """Features (N, D) a codec would code for ``source``'s SH AC coefficients."""
+    return np.asarray(stage.transform(_ac(source)))
+
+
+def sh_from_features(stage: ShStage, features: np.ndarray, *, like: Any = None) -> Any:
+    """Reconstructed shN (N, K-1, 3) from features; a torch tensor when ``like`` is one."""
+    sh_rest = sh_index.sh_rest_from_ac(np.ascontiguousarray(stage.inverse_transform(np.asarray(features)), dtype=np.float32))
+    if like is not None and hasattr(like, "detach"):
+        import torch
+
+        return torch.from_numpy(sh_rest).to(device=like.device, dtype=like.dtype)
+    return sh_rest
+
+
+# --------------------------------------------------------------------- codec
+@dataclass
+class ShacCompression:
+    """gsplat ``PngCompression``-shaped codec writing ``compress_dir/splats.gsc``.
+
+    ``rate_point``: a rate-point reference (default ``"gsplat_png"``: 8-bit PNG +
+    k-means SH, as gsplat); ``sh``/``sh_params``: SH stage override;
+    ``use_sort``: sort onto the grid with the rate point's method (else raster
+    order, as gsplat's ``use_sort=False``); ``verbose``: progress bars.
+    """
+
+    rate_point: str = "gsplat_png"
+    sh: str | None = None
+    sh_params: dict[str, Any] = field(default_factory=dict)
+    use_sort: bool = True
+    verbose: bool = False
+    filename: str = "splats.gsc"
+
+    def compress(self, compress_dir: str | os.PathLike, splats: Mapping[str, Any]) -> None:
+        """Encode ``splats`` into ``compress_dir/<filename>`` (directory created)."""
+        from gscodec_shac.pipeline import Encoder
+
+        Path(compress_dir).mkdir(parents=True, exist_ok=True)
+        encoder = Encoder(
+            self.rate_point, sh_stage=self.sh, sh_params=dict(self.sh_params),
+            sort=None if self.use_sort else "none", progress=self.verbose,
+        )
+        encoder.encode(splats_to_cloud(splats)).write(Path(compress_dir) / self.filename)
+
+    def decompress(self, compress_dir: str | os.PathLike) -> dict[str, Any]:
+        """Decode ``compress_dir/<filename>`` into a splats dict (Gaussians in grid order)."""
+        from gscodec_shac.pipeline import Decoder
+
+        stream = Bitstream.read(Path(compress_dir) / self.filename)
+        return cloud_to_splats(Decoder(progress=self.verbose).decode(stream))

@@ -1,0 +1,465 @@
+"""Rate points: YAML data that says how each attribute is coded (no code per point).
+
+A rate-point file holds shared ``defaults`` and named ``points``; each point is
+deep-merged over the defaults, then validated into a :class:`RatePoint`::
+
+    description: MPEG GSC video anchor ...          # free text (optional)
+    source: where the numbers come from             # free text (optional)
+    defaults:
+      codec: hevc                                   # grid codec of every attribute ...
+      codec_options: {preset: slow}
+      bits: 10                                      # ... and its bit depth
+      color: ycbcr                                  # rgb | ycbcr (SH colour triplets)
+      attributes:                                   # per-attribute overrides
+        positions: {bits: 16, layout: split8}       # split8 | single (lossless only)
+      sh: {stage: none}                             # SH stage and its parameters
+      sort: {method: plas, policy: pad, multiple: 8, seed: 0, weights: {xyz: 1.0}}
+      prune: {min_opacity: 0.0}                     # drop Gaussians below this opacity
+    points:
+      rp01:
+        qp: {opacity: 22, rotation: 17, scale: 12, sh_dc: 7, sh_ac: [32, 37, 42]}
+
+Attributes: ``positions, rotation, scale, opacity, sh_dc, sh_ac, sh_features,
+sh_labels``. No QP means lossless; lossless data of 9-16 bits goes into one
+plane (``layout: single``, the default except for positions and labels) or
+two 8-bit planes (``split8``). ``sh_ac`` takes one QP or one per SH degree
+(1, 2, 3, ...): the ladder. ``sh_features`` (default: as ``sh_ac``) codes the
+output of a transforming stage (pca, lst); ``sh_labels`` (default: the codec and
+layout of ``positions``) codes the integer labels of the ``vq`` stage.
+Positions and labels are always lossless.
+
+References: ``"paper_table3:rp2"`` (a file shipped in
+``gscodec_shac/rate_points/``), ``"my.yaml:fast"`` or ``"my.yaml"`` (a file
+with a single point). Every problem raises :class:`RatePointError` naming the
+file, the point, the key and what is wrong.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any, Mapping
+
+import yaml
+
+from gscodec_shac.errors import RatePointError
+
+ATTRIBUTES = ("positions", "rotation", "scale", "opacity", "sh_dc", "sh_ac", "sh_features", "sh_labels")
+LOSSLESS_ATTRIBUTES = ("positions", "sh_labels")
+LAYOUTS = ("split8", "single")
+COLORS = ("rgb", "ycbcr")
+SORT_METHODS = ("plas", "morton", "random", "none")
+SORT_POLICIES = ("pad", "drop")
+SORT_FEATURES = ("xyz", "scale", "opacity", "dc", "rotation")
+QP_RANGE = (0, 51)
+
+_FILE_KEYS = {"description", "source", "defaults", "points"}
+_POINT_KEYS = {"description", "codec", "codec_options", "bits", "color", "qp", "attributes", "sh", "sort", "prune"}
+_ATTRIBUTE_KEYS = {"codec", "codec_options", "bits", "qp", "layout"}
+_SORT_KEYS = {"method", "policy", "multiple", "seed", "weights", "normalize", "schedule"}
+_PRUNE_KEYS = {"min_opacity"}
+_DEFAULT_WEIGHTS = {"xyz": 1.0, "scale": 1.0, "opacity": 1.0, "dc": 1.0, "rotation": 0.0}
+
+
+@dataclass(frozen=True)
+class AttributeSpec:
+    """How one attribute is coded: codec (+ options), bit depth, QP(s), lossless layout."""
+
+    codec: str
+    bits: int
+    qp: int | tuple[int, ...] | None = None
+    options: dict[str, Any] = field(default_factory=dict)
+    layout: str = "single"
+
+    @property
+    def lossless(self) -> bool:
+        return self.qp is None
+
+    def qp_for_degree(self, degree: int) -> int | None:
+        """QP for SH degree ``degree`` (1-based) from a ladder; the last entry repeats."""
+        if self.qp is None or isinstance(self.qp, int):
+            return self.qp
+        return self.qp[min(degree, len(self.qp)) - 1]
+
+    def to_json(self) -> dict[str, Any]:
+        qp = list(self.qp) if isinstance(self.qp, tuple) else self.qp
+        return {"codec": self.codec, "bits": self.bits, "qp": qp, "options": dict(self.options), "layout": self.layout}
+
+
+@dataclass(frozen=True)
+class SortSpec:
+    """How Gaussians are placed on the grid (see :mod:`sorting`)."""
+
+    method: str = "plas"
+    policy: str = "pad"
+    multiple: int = 8
+    seed: int = 0
+    normalize: str = "minmax"
+    weights: dict[str, float] = field(default_factory=lambda: dict(_DEFAULT_WEIGHTS))
+    schedule: dict[str, Any] = field(default_factory=dict)  # PLAS schedule keywords
+
+    def to_json(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class RatePoint:
+    """A validated rate point (see module docstring)."""
+
+    name: str
+    attributes: dict[str, AttributeSpec]
+    color: str = "rgb"
+    sh_stage: str = "none"
+    sh_params: dict[str, Any] = field(default_factory=dict)
+    sort: SortSpec = field(default_factory=SortSpec)
+    min_opacity: float = 0.0
+    description: str = ""
+
+    def with_overrides(
+        self,
+        *,
+        sh_stage: str | None = None,
+        sh_params: Mapping[str, Any] | None = None,
+        sort_method: str | None = None,
+        seed: int | None = None,
+        codec_options: Mapping[str, Any] | None = None,
+    ) -> "RatePoint":
+        """A copy with the SH stage, sorting or lossy-codec options replaced (CLI overrides).
+
+        ``sh_params`` replace the point's stage parameters when the stage changes
+        and are merged into them otherwise. ``codec_options`` are merged into the
+        options of every attribute that has a QP (the lossy ones).
+        """
+        point = self
+        if sh_stage is not None or sh_params:
+            stage = sh_stage or self.sh_stage
+            base = dict(self.sh_params) if stage == self.sh_stage else {}
+            base.update(sh_params or {})
+            _check_stage(stage, None, "sh.stage")
+            point = dataclasses.replace(point, sh_stage=stage, sh_params=base)
+        if sort_method is not None or seed is not None:
+            sort = point.sort
+            if sort_method is not None:
+                if sort_method not in SORT_METHODS:
+                    raise RatePointError(f"unknown sort method {sort_method!r}; known: {', '.join(SORT_METHODS)}")
+                sort = dataclasses.replace(sort, method=sort_method)
+            if seed is not None:
+                sort = dataclasses.replace(sort, seed=int(seed))
+            point = dataclasses.replace(point, sort=sort)
+        if codec_options:
+            attributes = {
+                name: spec if spec.lossless else dataclasses.replace(spec, options={**spec.options, **codec_options})
+                for name, spec in point.attributes.items()
+            }
+            point = dataclasses.replace(point, attributes=attributes)
+        return point
+
+    def to_json(self) -> dict[str, Any]:
+        """The resolved rate point, as recorded in a container header."""
+        return {
+            "name": self.name,
+            "description": self.description,
+            "color": self.color,
+            "sh": {"stage": self.sh_stage, **self.sh_params},
+            "sort": self.sort.to_json(),
+            "prune": {"min_opacity": self.min_opacity},
+            "attributes": {name: spec.to_json() for name, spec in self.attributes.items()},
+        }
+
+
+# ------------------------------------------------------------------ loading
+def builtin_rate_point_files() -> dict[str, Path]:
+    """Shipped rate-point files by stem (``"paper_table3"`` -> path)."""
+    folder = resources.files("gscodec_shac") / "rate_points"
+    return {Path(str(p)).stem: Path(str(p)) for p in folder.iterdir() if str(p).endswith((".yaml", ".yml"))}
+
+
+def list_rate_points() -> list[str]:
+    """Every shipped rate point as a reference, e.g. ``"paper_table3:rp2"``."""
+    refs = []
+    for stem, path in sorted(builtin_rate_point_files().items()):
+        refs += [f"{stem}:{name}" for name in load_rate_point_file(path)]
+    return refs
+
+
+def load_rate_point(ref: "str | Path | RatePoint") -> RatePoint:
+    """Resolve a reference (see module docstring) to a validated :class:`RatePoint`."""
+    if isinstance(ref, RatePoint):
+        return ref
+    text = str(ref)
+    path, point = _split_reference(text)
+    points = load_rate_point_file(path)
+    if point is None:
+        if len(points) != 1:
+            raise RatePointError(f"{path}: holds {len(points)} rate points ({', '.join(points)}); name one as {path}:POINT")
+        return next(iter(points.values()))
+    if point not in points:
+        raise RatePointError(f"{path}: no rate point {point!r}; it has {', '.join(points)}")
+    return points[point]
+
+
+def load_rate_point_file(path: str | Path) -> dict[str, RatePoint]:
+    """All points of one YAML file, validated, by name."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise RatePointError(f"{path}: rate-point file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RatePointError(f"{path}: cannot read rate-point file ({exc})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise RatePointError(f"{path}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+    return parse_rate_points(data, str(path), stem=path.stem)
+
+
+def parse_rate_points(data: Any, source: str, stem: str = "") -> dict[str, RatePoint]:
+    """Validate an already-parsed rate-point document (see module docstring)."""
+    where = _Where(source)
+    if not isinstance(data, dict):
+        raise where.error("", "a rate-point file must be a mapping with 'points'")
+    where.unknown(data, _FILE_KEYS, "")
+    defaults = data.get("defaults") or {}
+    if not isinstance(defaults, dict):
+        raise where.error("defaults", "must be a mapping")
+    points = data.get("points")
+    if not isinstance(points, dict) or not points:
+        raise where.error("points", "must be a non-empty mapping of point name -> settings")
+    out = {}
+    for name, raw in points.items():
+        if not isinstance(name, str) or not name or ":" in name:
+            raise where.error(f"points.{name}", "point names must be non-empty strings without ':'")
+        if raw is None:
+            raw = {}
+        if not isinstance(raw, dict):
+            raise where.error(f"points.{name}", "must be a mapping")
+        merged = _deep_merge(defaults, raw)
+        merged.setdefault("description", data.get("description", ""))
+        out[name] = _build_point(merged, source, f"{stem}:{name}" if stem else name, point=name)
+    return out
+
+
+# -------------------------------------------------------------- validation
+class _Where:
+    """Error messages that name the file, point and key."""
+
+    def __init__(self, source: str, point: str | None = None) -> None:
+        self.source, self.point = source, point
+
+    def error(self, key: str, problem: str) -> RatePointError:
+        parts = [self.source]
+        if self.point:
+            parts.append(f"point {self.point!r}")
+        if key:
+            parts.append(f"key {key!r}")
+        return RatePointError(": ".join(parts) + f": {problem}")
+
+    def unknown(self, mapping: dict, allowed: set[str], prefix: str) -> None:
+        extra = sorted(str(k) for k in set(mapping) - allowed)
+        if extra:
+            key = f"{prefix}.{extra[0]}" if prefix else extra[0]
+            raise self.error(key, f"unknown key (allowed: {', '.join(sorted(allowed))})")
+
+
+def _build_point(raw: dict, source: str, full_name: str, point: str | None = None) -> RatePoint:
+    where = _Where(source, point or full_name)
+    where.unknown(raw, _POINT_KEYS, "")
+    codec = _string(where, raw, "codec", "hevc")
+    options = _mapping(where, raw, "codec_options")
+    bits = _bits(where, raw.get("bits", 10), "bits")
+    color = _choice(where, raw.get("color", "rgb"), COLORS, "color")
+    qps = _mapping(where, raw, "qp")
+    overrides = _mapping(where, raw, "attributes")
+    for key in list(qps) + list(overrides):
+        if key not in ATTRIBUTES:
+            prefix = "qp" if key in qps else "attributes"
+            raise where.error(f"{prefix}.{key}", f"unknown attribute (known: {', '.join(ATTRIBUTES)})")
+
+    attributes: dict[str, AttributeSpec] = {}
+    for name in ATTRIBUTES:
+        if name in ("sh_features", "sh_labels") and name not in overrides and name not in qps:
+            continue
+        over = overrides.get(name) or {}
+        if not isinstance(over, dict):
+            raise where.error(f"attributes.{name}", "must be a mapping")
+        where.unknown(over, _ATTRIBUTE_KEYS, f"attributes.{name}")
+        default_bits = 16 if name == "positions" else bits
+        spec_codec = _string(where, over, "codec", codec, f"attributes.{name}.codec")
+        inherited = options if spec_codec == codec else {}  # options belong to the file's codec
+        spec_options = {**inherited, **_mapping(where, over, "codec_options", f"attributes.{name}.codec_options")}
+        spec_bits = _bits(where, over.get("bits", default_bits), f"attributes.{name}.bits")
+        qp_key = f"attributes.{name}.qp" if "qp" in over else f"qp.{name}"
+        qp = _qp(where, over["qp"] if "qp" in over else qps.get(name), qp_key, ladder=name in ("sh_ac", "sh_features"))
+        default_layout = "split8" if name in LOSSLESS_ATTRIBUTES else "single"
+        layout = _choice(where, over.get("layout", default_layout), LAYOUTS, f"attributes.{name}.layout")
+        if name in LOSSLESS_ATTRIBUTES and qp is not None:
+            raise where.error(qp_key, f"{name} are coded losslessly; remove the QP")
+        _check_codec(where, spec_codec, qp, f"attributes.{name}.codec")
+        attributes[name] = AttributeSpec(spec_codec, spec_bits, qp, spec_options, layout)
+    if "sh_features" not in attributes:
+        attributes["sh_features"] = attributes["sh_ac"]
+    if "sh_labels" not in attributes:
+        pos = attributes["positions"]
+        attributes["sh_labels"] = AttributeSpec(pos.codec, 16, None, dict(pos.options), pos.layout)
+
+    sh = raw.get("sh") or {}
+    if not isinstance(sh, dict):
+        raise where.error("sh", "must be a mapping like {stage: pca, energy_retention: 0.99}")
+    sh = dict(sh)
+    stage = sh.pop("stage", "none")
+    _check_stage(stage, where, "sh.stage")
+    for key in sh:
+        if not isinstance(key, str):
+            raise where.error(f"sh.{key}", "stage parameter names must be strings")
+
+    sort_raw = _mapping(where, raw, "sort")
+    where.unknown(sort_raw, _SORT_KEYS, "sort")
+    weights_raw = sort_raw.get("weights", {})
+    if not isinstance(weights_raw, dict):
+        raise where.error("sort.weights", "must be a mapping of feature -> weight")
+    weights = dict(_DEFAULT_WEIGHTS)
+    for key, value in weights_raw.items():
+        if key not in SORT_FEATURES:
+            raise where.error(f"sort.weights.{key}", f"unknown sort feature (known: {', '.join(SORT_FEATURES)})")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+            raise where.error(f"sort.weights.{key}", f"must be a number >= 0, got {value!r}")
+        weights[key] = float(value)
+    sort = SortSpec(
+        method=_choice(where, sort_raw.get("method", "plas"), SORT_METHODS, "sort.method"),
+        policy=_choice(where, sort_raw.get("policy", "pad"), SORT_POLICIES, "sort.policy"),
+        multiple=_int(where, sort_raw.get("multiple", 8), "sort.multiple", 1, 1024),
+        seed=_int(where, sort_raw.get("seed", 0), "sort.seed", 0, 2**32 - 1),
+        normalize=_choice(where, sort_raw.get("normalize", "minmax"), ("minmax", "std"), "sort.normalize"),
+        weights=weights,
+        schedule=_mapping(where, sort_raw, "schedule", "sort.schedule"),
+    )
+    if sort.schedule and sort.method != "plas":
+        raise where.error("sort.schedule", "schedule options apply to the plas method only")
+
+    prune = _mapping(where, raw, "prune")
+    where.unknown(prune, _PRUNE_KEYS, "prune")
+    min_opacity = prune.get("min_opacity", 0.0)
+    if isinstance(min_opacity, bool) or not isinstance(min_opacity, (int, float)) or not 0 <= min_opacity < 1:
+        raise where.error("prune.min_opacity", f"must be a number in [0, 1), got {min_opacity!r}")
+
+    description = raw.get("description", "")
+    if not isinstance(description, str):
+        raise where.error("description", "must be a string")
+    return RatePoint(
+        name=full_name,
+        attributes=attributes,
+        color=color,
+        sh_stage=stage,
+        sh_params=sh,
+        sort=sort,
+        min_opacity=float(min_opacity),
+        description=description.strip(),
+    )
+
+
+def _qp(where: _Where, value: Any, key: str, *, ladder: bool) -> int | tuple[int, ...] | None:
+    if value is None:
+        return None
+    if ladder and isinstance(value, list):
+        if not value:
+            raise where.error(key, "a QP ladder needs at least one QP (one per SH degree)")
+        return tuple(_qp(where, v, f"{key}[{i}]", ladder=False) for i, v in enumerate(value))
+    lo, hi = QP_RANGE
+    if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+        what = "an integer QP or a list of QPs (one per SH degree)" if ladder else "an integer"
+        raise where.error(key, f"QP must be {what} in {lo}-{hi}, got {value!r}")
+    return value
+
+
+def _bits(where: _Where, value: Any, key: str) -> int:
+    return _int(where, value, key, 1, 16)
+
+
+def _int(where: _Where, value: Any, key: str, lo: int, hi: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+        raise where.error(key, f"must be an integer in {lo}-{hi}, got {value!r}")
+    return value
+
+
+def _choice(where: _Where, value: Any, choices: tuple[str, ...], key: str) -> str:
+    if value not in choices:
+        raise where.error(key, f"must be one of {', '.join(choices)}, got {value!r}")
+    return value
+
+
+def _string(where: _Where, raw: dict, name: str, default: str, key: str | None = None) -> str:
+    value = raw.get(name, default)
+    if not isinstance(value, str) or not value:
+        raise where.error(key or name, f"must be a non-empty string, got {value!r}")
+    return value
+
+
+def _mapping(where: _Where, raw: dict, name: str, key: str | None = None) -> dict:
+    value = raw.get(name) or {}
+    if not isinstance(value, dict):
+        raise where.error(key or name, f"must be a mapping, got {type(value).__name__}")
+    return dict(value)
+
+
+def _check_codec(where: _Where, name: str, qp: Any, key: str) -> None:
+    from gscodec_shac.codecs.base import CODECS, _load_builtin_codecs
+
+    _load_builtin_codecs()
+    if name not in CODECS:
+        raise where.error(key, f"unknown codec {name!r} (known: {', '.join(sorted(CODECS))})")
+    if qp is not None and CODECS[name].lossless_only:
+        raise where.error(key, f"codec {name!r} is lossless only but a QP is given")
+
+
+def _check_stage(stage: Any, where: _Where | None, key: str) -> None:
+    from gscodec_shac.shac.base import STAGES, _load_builtin_stages
+
+    _load_builtin_stages()
+    if stage not in STAGES:
+        problem = f"unknown SH stage {stage!r} (known: {', '.join(sorted(STAGES))})"
+        raise where.error(key, problem) if where else RatePointError(problem)
+
+
+def _deep_merge(base: dict, over: dict) -> dict:
+    out = copy.deepcopy(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _deep_merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def _split_reference(text: str) -> tuple[Path, str | None]:
+    """``"stem:point"``, ``"file.yaml:point"`` or ``"file.yaml"`` -> (file, point)."""
+    builtin = builtin_rate_point_files()
+    candidate = Path(text)
+    if candidate.suffix in (".yaml", ".yml") and candidate.is_file():
+        return candidate, None
+    if ":" in text:
+        head, point = text.rsplit(":", 1)
+        if head in builtin:
+            return builtin[head], point
+        path = Path(head)
+        if path.suffix in (".yaml", ".yml") or path.is_file():
+            if not path.is_file():
+                raise RatePointError(f"{path}: rate-point file not found")
+            return path, point
+        raise RatePointError(
+            f"unknown rate-point file {head!r} in {text!r}; shipped: {', '.join(sorted(builtin))} "
+            "(or give a path to a .yaml file)"
+        )
+    if text in builtin:
+        return builtin[text], None
+    if candidate.suffix in (".yaml", ".yml"):
+        raise RatePointError(f"{candidate}: rate-point file not found")
+    raise RatePointError(
+        f"unknown rate point {text!r}; use FILE:POINT, e.g. paper_table3:rp2 "
+        f"(shipped files: {', '.join(sorted(builtin))})"
+    )
