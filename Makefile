@@ -1,12 +1,14 @@
 # The README's two commands: `make demo` and `make test`.
 # Both build the environment from nothing: a venv in .venv with the CPU build of
 # torch 2.13.0 installed *before* the project (a plain `torch` requirement would
-# pull GBs of CUDA packages), then the project with its test extras.
+# pull GBs of CUDA packages), then the project; `make test` adds the test and
+# `distributed` (Ray) extras.
 
 VENV   ?= .venv
 PYTHON ?= python3
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
+TEST_STAMP := $(VENV)/.installed-test-stamp
 DEMO_OUT ?= demo-output
 
 .PHONY: demo test venv clean
@@ -23,7 +25,12 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/gscodec-shac demo --out $(DEMO_OUT)
 
-test: $(STAMP)
+# The tests also cover the Ray executor, so they install the `distributed` extra.
+$(TEST_STAMP): $(STAMP)
+	$(BIN)/pip install --quiet -e ".[dev,distributed]"
+	touch $(TEST_STAMP)
+
+test: $(TEST_STAMP)
 	$(BIN)/python -m pytest -q
 
 clean:

@@ -1,0 +1,50 @@
+"""``gscodec-shac rd-report DIR``: tables, BD-rates and RD plots from a sweep's results."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "rd-report",
+        help="tables, BD-rates and RD plots from the results of 'gscodec-shac rd'",
+        description=(
+            "Read DIR/results.json (or the run log) and write report.md (RD and BD tables), "
+            "bd.json, bd.csv and one rd_<scene>.png per scene into DIR/report (or --out)."
+        ),
+    )
+    parser.add_argument("results", help="a sweep output folder (or its results.json)")
+    parser.add_argument("--out", default=None, help="report folder (default: DIR/report)")
+    parser.add_argument("--anchor", default=None, help="method the BD-rates are measured against (default: the sweep's)")
+    parser.add_argument("--x-axis", choices=("mb", "bpg"), default="mb", help="plot size in MB or bits per Gaussian")
+    parser.add_argument("--title", default=None, help="report title")
+    parser.add_argument("--prefix", default="rd_", help="figure file prefix (default rd_)")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from gscodec_shac.rd.report import bd_table, write_report
+    from gscodec_shac.rd.results import load_results
+
+    paths = write_report(args.results, args.out, anchor=args.anchor, x_axis=args.x_axis, title=args.title,
+                         figure_prefix=args.prefix)
+    rows = load_results(args.results)
+    table = bd_table(rows, args.anchor or _anchor(args.results))
+    for entry in table:
+        if entry["metric"] in ("psnr_gt", "psnr_ref"):
+            rate = f"{entry['bd_rate_pct']:+.1f}%" if entry["bd_rate_pct"] is not None else "n/a"
+            gain = f"{entry['bd_quality']:+.3f} dB" if entry["bd_quality"] is not None else "n/a"
+            print(f"{entry['scene']}\t{entry['method']}\t{entry['metric']}\tBD-rate {rate}\tBD-PSNR {gain}")
+    print(f"report: {paths['markdown']}")
+    return 0
+
+
+def _anchor(results: str) -> str:
+    import json
+    from pathlib import Path
+
+    sweep = Path(results) / "sweep.json"
+    if sweep.is_file():
+        return (json.loads(sweep.read_text()).get("settings") or {}).get("anchor") or "baseline"
+    return "baseline"

@@ -1,0 +1,129 @@
+"""Bjontegaard delta metrics: BD-rate and BD-PSNR of one RD curve against an anchor.
+
+The curves are compared the way MPEG's and VCEG's reference implementations do with
+piecewise-cubic interpolation: each curve is a monotone piecewise-cubic Hermite
+interpolant (PCHIP, :class:`scipy.interpolate.PchipInterpolator`) through its points,
+
+* **BD-rate**: log10(rate) as a function of quality; the mean horizontal gap over the
+  quality interval both curves cover, ``(10 ** mean_gap - 1) * 100`` percent
+  (negative = fewer bytes for the same quality);
+* **BD-PSNR** (BD-quality): quality as a function of log10(rate); the mean vertical gap
+  over the log-rate interval both curves cover (positive = better quality).
+
+The integrals are exact integrals of the interpolants (PCHIP's antiderivative), not
+sampled sums. Points are sorted by the abscissa; points repeating an abscissa are averaged.
+A curve needs at least two distinct points (MPEG uses four); where there is no overlap, or
+too few points, the result is NaN with a reason.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from scipy.interpolate import PchipInterpolator
+
+
+@dataclass(frozen=True)
+class BdResult:
+    """A BD value (percent for BD-rate, quality units for BD-PSNR) and how it was obtained."""
+
+    value: float
+    overlap: tuple[float, float] | None = None  # integration interval
+    monotonic: bool = True  # both curves had quality increasing with rate
+    reason: str | None = None  # why ``value`` is NaN
+
+    @property
+    def ok(self) -> bool:
+        return math.isfinite(self.value)
+
+
+def _curve(x: Sequence[float], y: Sequence[float], what: str) -> tuple[np.ndarray, np.ndarray] | str:
+    """Sorted, de-duplicated finite (x, y) points, or the reason they are unusable."""
+    xa, ya = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    if xa.shape != ya.shape or xa.ndim != 1:
+        return f"{what}: rates and qualities must be two equally long 1-D sequences"
+    keep = np.isfinite(xa) & np.isfinite(ya)
+    xa, ya = xa[keep], ya[keep]
+    if xa.size == 0:
+        return f"{what}: no finite points"
+    ux, inverse = np.unique(xa, return_inverse=True)
+    uy = np.bincount(inverse, weights=ya) / np.bincount(inverse)
+    if ux.size < 2:
+        return f"{what}: needs at least 2 distinct points, has {ux.size}"
+    return ux, uy
+
+
+def _is_monotonic(rate: np.ndarray, quality: np.ndarray) -> bool:
+    order = np.argsort(rate)
+    return bool(np.all(np.diff(quality[order]) > 0))
+
+
+def _mean_gap(anchor: tuple[np.ndarray, np.ndarray], test: tuple[np.ndarray, np.ndarray]) -> tuple[float, tuple[float, float]] | str:
+    """Mean of ``test(x) - anchor(x)`` over the common x interval, both PCHIP-interpolated."""
+    lo = max(anchor[0][0], test[0][0])
+    hi = min(anchor[0][-1], test[0][-1])
+    if not hi > lo:
+        return "the curves do not overlap"
+    f_anchor = PchipInterpolator(*anchor, extrapolate=False)
+    f_test = PchipInterpolator(*test, extrapolate=False)
+    gap = (f_test.integrate(lo, hi) - f_anchor.integrate(lo, hi)) / (hi - lo)
+    return float(gap), (float(lo), float(hi))
+
+
+def _positive_rates(rate: Sequence[float], what: str) -> np.ndarray | str:
+    r = np.asarray(rate, dtype=np.float64)
+    if np.any(r[np.isfinite(r)] <= 0):
+        return f"{what}: rates must be positive"
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.log10(r)
+
+
+def bd_rate(
+    anchor_rate: Sequence[float], anchor_quality: Sequence[float],
+    test_rate: Sequence[float], test_quality: Sequence[float],
+) -> BdResult:
+    """BD-rate (percent) of the test curve against the anchor (negative = saves bytes)."""
+    monotonic = _is_monotonic(np.asarray(anchor_rate, float), np.asarray(anchor_quality, float)) and _is_monotonic(
+        np.asarray(test_rate, float), np.asarray(test_quality, float)
+    )
+    log_a, log_t = _positive_rates(anchor_rate, "anchor"), _positive_rates(test_rate, "test")
+    for item in (log_a, log_t):
+        if isinstance(item, str):
+            return BdResult(math.nan, reason=item)
+    anchor, test = _curve(anchor_quality, log_a, "anchor"), _curve(test_quality, log_t, "test")
+    for item in (anchor, test):
+        if isinstance(item, str):
+            return BdResult(math.nan, reason=item)
+    gap = _mean_gap(anchor, test)
+    if isinstance(gap, str):
+        return BdResult(math.nan, reason=gap, monotonic=monotonic)
+    return BdResult((10.0 ** gap[0] - 1.0) * 100.0, gap[1], monotonic)
+
+
+def bd_quality(
+    anchor_rate: Sequence[float], anchor_quality: Sequence[float],
+    test_rate: Sequence[float], test_quality: Sequence[float],
+) -> BdResult:
+    """BD-PSNR (or BD-SSIM): mean quality gain of the test curve at equal rate."""
+    monotonic = _is_monotonic(np.asarray(anchor_rate, float), np.asarray(anchor_quality, float)) and _is_monotonic(
+        np.asarray(test_rate, float), np.asarray(test_quality, float)
+    )
+    log_a, log_t = _positive_rates(anchor_rate, "anchor"), _positive_rates(test_rate, "test")
+    for item in (log_a, log_t):
+        if isinstance(item, str):
+            return BdResult(math.nan, reason=item)
+    anchor, test = _curve(log_a, anchor_quality, "anchor"), _curve(log_t, test_quality, "test")
+    for item in (anchor, test):
+        if isinstance(item, str):
+            return BdResult(math.nan, reason=item)
+    gap = _mean_gap(anchor, test)
+    if isinstance(gap, str):
+        return BdResult(math.nan, reason=gap, monotonic=monotonic)
+    return BdResult(gap[0], gap[1], monotonic)
+
+
+#: BD-PSNR is BD-quality with PSNR as the quality.
+bd_psnr = bd_quality

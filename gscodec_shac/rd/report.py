@@ -1,0 +1,264 @@
+"""Tables and BD-rates from sweep results (rows as written by the driver).
+
+* :func:`curves` - one RD curve per (scene, method): sizes and qualities sorted by size.
+* :func:`bd_table` - BD-rate and BD-quality of every method against the anchor method,
+  per scene and quality metric (PSNR/SSIM against ground truth and against the
+  uncompressed model), with :mod:`gscodec_shac.rd.bd`.
+* :func:`markdown_report` / :func:`write_report` - the Markdown tables, ``bd.json`` /
+  ``bd.csv`` and one RD figure per scene (:mod:`gscodec_shac.rd.plots`).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable
+
+from gscodec_shac.rd.bd import bd_quality, bd_rate
+from gscodec_shac.rd.cache import atomic_write_json, atomic_write_text
+from gscodec_shac.rd.results import load_results
+
+#: Quality metrics a report looks at: (column, label, unit of the BD-quality).
+METRICS = (
+    ("psnr_gt", "PSNR vs GT", "dB"),
+    ("ssim_gt", "SSIM vs GT", ""),
+    ("psnr_ref", "PSNR vs uncompressed", "dB"),
+    ("ssim_ref", "SSIM vs uncompressed", ""),
+)
+BD_FIELDS = ("scene", "method", "anchor", "metric", "bd_rate_pct", "bd_quality", "size_change_pct", "quality_change",
+             "common_points", "points", "anchor_points", "overlap_lo", "overlap_hi", "monotonic", "note")
+
+
+@dataclass
+class Curve:
+    """The ok rows of one (scene, method), sorted by bytes."""
+
+    scene: str
+    method: str
+    rows: list[dict[str, Any]]
+
+    def values(self, column: str) -> list[float]:
+        return [_num(r.get(column)) for r in self.rows]
+
+    def has(self, column: str) -> bool:
+        return any(math.isfinite(v) for v in self.values(column))
+
+
+def _num(value: Any) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def short_rate_point(ref: str) -> str:
+    """``paper_table3:rp1`` -> ``rp1``; a path-qualified reference keeps only the point name."""
+    return ref.rsplit(":", 1)[-1] if ":" in ref else Path(ref).stem
+
+
+def ordered(values: Iterable[str]) -> list[str]:
+    seen: list[str] = []
+    for value in values:
+        if value not in seen:
+            seen.append(value)
+    return seen
+
+
+def curves(rows: list[dict[str, Any]]) -> dict[tuple[str, str], Curve]:
+    """Curves of every (scene, method) with at least one ok row, in first-seen order."""
+    out: dict[tuple[str, str], Curve] = {}
+    for row in rows:
+        if row.get("status") != "ok" or not _num(row.get("bytes")) > 0:
+            continue
+        key = (row["scene"], row["method"])
+        out.setdefault(key, Curve(*key, []))
+        out[key].rows.append(row)
+    for curve in out.values():
+        curve.rows.sort(key=lambda r: _num(r.get("bytes")))
+    return out
+
+
+def bd_table(rows: list[dict[str, Any]], anchor: str = "baseline") -> list[dict[str, Any]]:
+    """BD-rate (percent) and BD-quality of every method against ``anchor``, per scene and metric."""
+    table = []
+    all_curves = curves(rows)
+    for (scene, method), curve in all_curves.items():
+        base = all_curves.get((scene, anchor))
+        if method == anchor or base is None or len(curve.rows) < 2:
+            continue  # single operating points (SPZ, SOG) have no curve: see the RD table
+        for column, _, _ in METRICS:
+            if not (curve.has(column) and base.has(column)):
+                continue
+            args = (base.values("bytes"), base.values(column), curve.values("bytes"), curve.values(column))
+            rate, quality = bd_rate(*args), bd_quality(*args)
+            size_change, quality_change, common = _same_point_changes(base, curve, column)
+            table.append({
+                "scene": scene, "method": method, "anchor": anchor, "metric": column,
+                "bd_rate_pct": rate.value if rate.ok else None,
+                "bd_quality": quality.value if quality.ok else None,
+                "size_change_pct": size_change, "quality_change": quality_change, "common_points": common,
+                "points": len(curve.rows), "anchor_points": len(base.rows),
+                "overlap_lo": rate.overlap[0] if rate.overlap else None,
+                "overlap_hi": rate.overlap[1] if rate.overlap else None,
+                "monotonic": rate.monotonic and quality.monotonic,
+                "note": "; ".join(
+                    [f"BD-rate: {rate.reason} in quality" for _ in [0] if rate.reason]
+                    + [f"BD-quality: {quality.reason} in rate" for _ in [0] if quality.reason]
+                    + ([] if rate.monotonic and quality.monotonic else ["quality not increasing with rate"])),
+            })
+    return table
+
+
+def _same_point_changes(base: Curve, curve: Curve, column: str) -> tuple[float | None, float | None, int]:
+    """Mean size change (percent) and quality change at the rate points both curves have."""
+    anchor = {r["rate_point"]: r for r in base.rows}
+    pairs = [(anchor[r["rate_point"]], r) for r in curve.rows if r["rate_point"] in anchor]
+    pairs = [(a, t) for a, t in pairs if math.isfinite(_num(a.get(column))) and math.isfinite(_num(t.get(column)))]
+    if not pairs:
+        return None, None, 0
+    size = sum(_num(t["bytes"]) / _num(a["bytes"]) - 1.0 for a, t in pairs) / len(pairs) * 100.0
+    quality = sum(_num(t[column]) - _num(a[column]) for a, t in pairs) / len(pairs)
+    return size, quality, len(pairs)
+
+
+def _fmt(value: Any, digits: int = 2) -> str:
+    number = _num(value)
+    return f"{number:.{digits}f}" if math.isfinite(number) else "-"
+
+
+def _scene_header(scene: str, rows: list[dict[str, Any]]) -> list[str]:
+    ok = [r for r in rows if r.get("status") == "ok"]
+    first = ok[0] if ok else (rows[0] if rows else {})
+    lines = [f"## {scene}", ""]
+    facts = []
+    if first.get("n_gaussians"):
+        facts.append(f"{int(first['n_gaussians']):,} Gaussians")
+    if first.get("uncompressed_bytes"):
+        facts.append(f"uncompressed PLY {int(first['uncompressed_bytes']) / 1e6:.2f} MB")
+    if first.get("n_views"):
+        facts.append(f"{first['n_views']} test views")
+    if first.get("has_gt"):
+        facts.append(f"uncompressed model vs GT: PSNR {_fmt(first.get('uncompressed_psnr_gt'))} dB, "
+                     f"SSIM {_fmt(first.get('uncompressed_ssim_gt'), 4)}")
+    else:
+        facts.append("no ground truth: scores are against the uncompressed model's renders")
+    if facts:
+        lines += ["; ".join(facts) + ".", ""]
+    return lines
+
+
+def rd_table_markdown(rows: list[dict[str, Any]]) -> list[str]:
+    """One Markdown table of the ok rows of one scene (method x rate point)."""
+    has_gt = any(r.get("psnr_gt") is not None for r in rows)
+    has_lpips = any(r.get("lpips_ref") is not None for r in rows)
+    head = ["method", "rate point", "MB", "bits/G", "SH share"]
+    if has_gt:
+        head += ["PSNR gt", "SSIM gt"] + (["LPIPS gt"] if has_lpips else [])
+    head += ["PSNR ref", "SSIM ref"] + (["LPIPS ref"] if has_lpips else []) + ["enc s", "dec s"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for row in rows:
+        if row.get("status") != "ok":
+            continue
+        sizes = row.get("sizes") or {}
+        sh = sum(v for k, v in sizes.items() if k in ("sh", "sh_state"))
+        share = f"{100.0 * sh / row['bytes']:.0f}%" if sh and row.get("bytes") else "-"
+        cells = [row["method"], short_rate_point(row["rate_point"]), _fmt(_num(row["bytes"]) / 1e6, 3),
+                 _fmt(row.get("bits_per_gaussian"), 1), share]
+        if has_gt:
+            cells += [_fmt(row.get("psnr_gt")), _fmt(row.get("ssim_gt"), 4)] + ([_fmt(row.get("lpips_gt"), 4)] if has_lpips else [])
+        cells += [_fmt(row.get("psnr_ref")), _fmt(row.get("ssim_ref"), 4)] + ([_fmt(row.get("lpips_ref"), 4)] if has_lpips else [])
+        cells += [_fmt(row.get("encode_s"), 1), _fmt(row.get("decode_s"), 1)]
+        lines.append("| " + " | ".join(str(c) for c in cells) + " |")
+    return lines
+
+
+def bd_markdown(table: list[dict[str, Any]], scene: str) -> list[str]:
+    """BD-rate / BD-quality of one scene as a Markdown table (one row per method and metric)."""
+    entries = [e for e in table if e["scene"] == scene]
+    if not entries:
+        return []
+    labels = {m: label for m, label, _ in METRICS}
+    lines = [f"BD against `{entries[0]['anchor']}`: negative BD-rate = fewer bytes at equal quality (PCHIP over "
+             "the overlapping interval); 'at equal rate point' = mean change over the rate points both ran at.", "",
+             "| method | quality | BD-rate | BD-quality | size at equal rate point | quality at equal rate point | note |",
+             "|---|---|---|---|---|---|---|"]
+    order = {m: i for i, (m, _, _) in enumerate(METRICS)}
+    for e in sorted(entries, key=lambda x: (ordered(y["method"] for y in entries).index(x["method"]), order[x["metric"]])):
+        digits = 3 if e["metric"].startswith("psnr") else 4
+        unit = " dB" if e["metric"].startswith("psnr") else ""
+        flag = "" if e["monotonic"] else "*"
+        rate = f"{e['bd_rate_pct']:+.1f}%{flag}" if e["bd_rate_pct"] is not None else "n/a"
+        quality = f"{e['bd_quality']:+.{digits}f}{unit}{flag}" if e["bd_quality"] is not None else "n/a"
+        size = f"{e['size_change_pct']:+.1f}%" if e.get("size_change_pct") is not None else "-"
+        same = f"{e['quality_change']:+.{digits}f}{unit}" if e.get("quality_change") is not None else "-"
+        lines.append(f"| {e['method']} | {labels[e['metric']]} | {rate} | {quality} | {size} | {same} | {e['note']} |")
+    if any(not e["monotonic"] for e in entries):
+        lines += ["", "\\* a curve whose quality does not increase with rate: the value is indicative."]
+    return lines
+
+
+def markdown_report(rows: list[dict[str, Any]], table: list[dict[str, Any]], title: str = "RD results",
+                    figures: dict[str, str] | None = None) -> str:
+    """The whole report: per scene its facts, RD table, BD table, figure and unfinished runs."""
+    lines = [f"# {title}", ""]
+    for scene in ordered(r["scene"] for r in rows):
+        scene_rows = [r for r in rows if r["scene"] == scene]
+        lines += _scene_header(scene, scene_rows)
+        lines += rd_table_markdown(scene_rows) + [""]
+        bd = bd_markdown(table, scene)
+        if bd:
+            lines += bd + [""]
+        if figures and scene in figures:
+            lines += [f"![RD curves, {scene}]({figures[scene]})", ""]
+        unfinished = [r for r in scene_rows if r.get("status") != "ok"]
+        if unfinished:
+            lines += ["Runs without numbers:", ""]
+            lines += [f"- {r['method']} @ {short_rate_point(r['rate_point'])}: {r['status']}: {r.get('error') or ''}"
+                      for r in unfinished]
+            lines.append("")
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def bd_csv(table: list[dict[str, Any]]) -> str:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=BD_FIELDS, lineterminator="\n")
+    writer.writeheader()
+    for entry in table:
+        writer.writerow({k: ("" if entry.get(k) is None else entry.get(k)) for k in BD_FIELDS})
+    return buffer.getvalue()
+
+
+def write_report(
+    results: str | Path, out: str | Path | None = None, *, anchor: str | None = None, x_axis: str = "mb",
+    title: str | None = None, figure_prefix: str = "rd_",
+) -> dict[str, Path]:
+    """Tables, BD-rates and plots of a results folder; returns the written paths by kind."""
+    import json
+
+    from gscodec_shac.rd.plots import plot_scene
+
+    results = Path(results)
+    rows = load_results(results)
+    folder = results if results.is_dir() else results.parent
+    out_dir = Path(out) if out is not None else folder / "report"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    sweep_info: dict[str, Any] = {}
+    if (folder / "sweep.json").is_file():
+        sweep_info = json.loads((folder / "sweep.json").read_text())
+    anchor = anchor or (sweep_info.get("settings") or {}).get("anchor") or "baseline"
+    table = bd_table(rows, anchor)
+    written: dict[str, Path] = {}
+    figures: dict[str, str] = {}
+    for scene in ordered(r["scene"] for r in rows):
+        path = out_dir / f"{figure_prefix}{scene}.png"
+        if plot_scene(rows, scene, path, x_axis=x_axis, anchor=anchor):
+            figures[scene] = path.name
+            written[f"figure:{scene}"] = path
+    name = title or f"RD results: {sweep_info.get('name', folder.name)}"
+    written["markdown"] = atomic_write_text(out_dir / "report.md", markdown_report(rows, table, name, figures))
+    written["bd_json"] = atomic_write_json(out_dir / "bd.json", table)
+    written["bd_csv"] = atomic_write_text(out_dir / "bd.csv", bd_csv(table))
+    return written
