@@ -35,6 +35,7 @@ Writes a JSON file and (re)writes the post-hoc section of ``docs/lst.md``
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import shlex
 import sys
@@ -161,8 +162,9 @@ def load_scenes(names: list[str], synthetic_n: int) -> dict[str, tuple[str, np.n
                 desc = f"{folder} without all-zero f_rest rows (N = {int(keep.sum()):,} of {len(cloud):,})"
             out[name] = (desc, dc, ac)
         elif name == "synthetic":
+            noise = inspect.signature(make_synthetic_scene).parameters["noise"].default
             cloud = make_synthetic_scene(synthetic_n, seed=0).cloud
-            out[name] = (f"synthetic seed 0 (N = {synthetic_n:,}, noise 0.15)", cloud.sh_dc, cloud.ac_matrix())
+            out[name] = (f"synthetic seed 0 (N = {synthetic_n:,}, default noise {noise})", cloud.sh_dc, cloud.ac_matrix())
         else:
             raise SystemExit(f"error: unknown scene {name!r}")
     return out

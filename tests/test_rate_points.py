@@ -17,6 +17,7 @@ EXPECTED = {
     "paper_table3": ["rp1", "rp2", "rp3", "rp4"],
     "gscodec_studio": ["rp0", "rp1", "rp2", "rp3"],
     "gsplat_png": ["default"],
+    "shac_recommended": ["rp1", "rp2", "rp3", "rp4"],
 }
 # opacity, rotation, scale, SH DC, SH AC (one QP or one per degree)
 MPEG = {"rp01": (22, 17, 12, 7, (32, 37, 42)), "rp02": (17, 7, 12, 7, (22, 27, 32)),
@@ -31,6 +32,14 @@ def _qps(point):
 def test_shipped_files_and_points():
     assert sorted(builtin_rate_point_files()) == sorted(EXPECTED)
     assert set(list_rate_points()) == {f"{stem}:{p}" for stem, points in EXPECTED.items() for p in points}
+
+
+def test_recommended_points_keep_the_paper_qps_and_change_only_layouts():
+    for name, qps in TABLE3.items():
+        point = load_rate_point(f"shac_recommended:{name}")
+        assert _qps(point) == qps
+        assert point.attributes["positions"].codec == "jpegls" and point.attributes["positions"].lossless
+        assert point.attributes["sh_ac"].options["layout"] == "frames"
 
 
 def test_mpeg_and_paper_numbers():
