@@ -242,7 +242,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         for point in args.rate_points:
             for sh in args.sh:
-                gsc = work / f"{scene}-{point.replace(':', '-')}-{sh}.gsc"
+                gsc = work / f"{scene}-{Path(point).name.replace(':', '-')}-{sh}.gsc"
                 options = {"ply": ply, "gsc": gsc, "rate_point": point, "sh": sh, "repeats": args.repeats}
                 if args.sort:
                     options["sort"] = args.sort
