@@ -71,6 +71,9 @@ def main(argv: list[str] | None = None) -> int:
     anchor = None
     for suffix, label, category in TRAINED:
         run = args.runs / f"{args.prefix}_{suffix}"
+        if not (run / "metrics.json").exists():
+            print(f"{label}: no run at {run}, skipped", file=sys.stderr)
+            continue
         metrics = json.loads((run / "metrics.json").read_text())
         cloud = read_ply(run / "point_cloud.ply")
         p, s = score(cloud, cams, images, bg)
@@ -83,6 +86,8 @@ def main(argv: list[str] | None = None) -> int:
         if suffix == "train_l3_d45":
             anchor = cloud
         print(f"{label}: PSNR {p:.2f} SSIM {s:.4f}", file=sys.stderr)
+    if anchor is None:
+        raise SystemExit(f"error: the Train-L3-D45 run {args.prefix}_train_l3_d45 is needed for the post-hoc rows")
     for name, params, label in POST_HOC:
         ac = anchor.ac_matrix()
         stage = make_stage(name, **params).fit(ac)
