@@ -26,12 +26,12 @@ from __future__ import annotations
 import json
 import os
 import struct
-import tempfile
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from gscodec_shac.atomic import write_bytes_atomic
 from gscodec_shac.errors import BitstreamError
 
 MAGIC = b"\x89GSC\r\n\x1a\n"
@@ -192,19 +192,7 @@ def is_gsc(path: str | os.PathLike) -> bool:
 
 def write_atomic(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` through a temporary file in the same directory."""
-    path = Path(path)
-    directory = path.parent if str(path.parent) else Path(".")
-    if not directory.is_dir():
-        raise BitstreamError(f"{path}: output directory {directory} does not exist")
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-        os.replace(tmp_name, path)
-    except BaseException:
-        if os.path.exists(tmp_name):
-            os.unlink(tmp_name)
-        raise
+    write_bytes_atomic(path, data, error=BitstreamError)
 
 
 def _check_table(table: Any) -> list[tuple[str, int, int, dict[str, Any]]]:

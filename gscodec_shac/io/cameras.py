@@ -22,7 +22,6 @@ import json
 import math
 import os
 import struct
-import tempfile
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +29,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from gscodec_shac.atomic import write_bytes_atomic
 from gscodec_shac.errors import CameraFormatError, ValidationError
 
 PathLike = str | os.PathLike
@@ -313,18 +313,7 @@ def _image_size(path: Path) -> tuple[int, int]:
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
-    directory = path.parent if str(path.parent) else Path(".")
-    if not directory.is_dir():
-        raise CameraFormatError(f"{path}: output directory {directory} does not exist")
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-        os.replace(tmp_name, path)
-    except BaseException:
-        if os.path.exists(tmp_name):
-            os.unlink(tmp_name)
-        raise
+    write_bytes_atomic(path, data, error=CameraFormatError)
 
 
 # --------------------------------------------------------------------------- #

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import os
 import re
-import tempfile
 import warnings
 from pathlib import Path
 
@@ -27,6 +26,7 @@ import numpy as np
 import plyfile
 
 from gscodec_shac import sh_index
+from gscodec_shac.atomic import atomic_output
 from gscodec_shac.errors import PlyFormatError, ValidationError
 from gscodec_shac.gaussians import GaussianCloud
 
@@ -125,18 +125,8 @@ def write_ply(path: str | os.PathLike, cloud: GaussianCloud, *, write_normals: b
     path = Path(path)
     table = cloud_to_structured(cloud, write_normals=write_normals)
     element = plyfile.PlyElement.describe(table, "vertex")
-    directory = path.parent if str(path.parent) else Path(".")
-    if not directory.is_dir():
-        raise PlyFormatError(f"{path}: output directory {directory} does not exist")
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            plyfile.PlyData([element], text=False, byte_order="<").write(handle)
-        os.replace(tmp_name, path)
-    except BaseException:
-        if os.path.exists(tmp_name):
-            os.unlink(tmp_name)
-        raise
+    with atomic_output(path, error=PlyFormatError) as handle:
+        plyfile.PlyData([element], text=False, byte_order="<").write(handle)
 
 
 def cloud_to_structured(cloud: GaussianCloud, *, write_normals: bool = True) -> np.ndarray:

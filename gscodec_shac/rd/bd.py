@@ -18,6 +18,7 @@ too few points, the result is NaN with a reason.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Sequence
@@ -86,21 +87,10 @@ def bd_rate(
     test_rate: Sequence[float], test_quality: Sequence[float],
 ) -> BdResult:
     """BD-rate (percent) of the test curve against the anchor (negative = saves bytes)."""
-    monotonic = _is_monotonic(np.asarray(anchor_rate, float), np.asarray(anchor_quality, float)) and _is_monotonic(
-        np.asarray(test_rate, float), np.asarray(test_quality, float)
-    )
-    log_a, log_t = _positive_rates(anchor_rate, "anchor"), _positive_rates(test_rate, "test")
-    for item in (log_a, log_t):
-        if isinstance(item, str):
-            return BdResult(math.nan, reason=item)
-    anchor, test = _curve(anchor_quality, log_a, "anchor"), _curve(test_quality, log_t, "test")
-    for item in (anchor, test):
-        if isinstance(item, str):
-            return BdResult(math.nan, reason=item)
-    gap = _mean_gap(anchor, test)
-    if isinstance(gap, str):
-        return BdResult(math.nan, reason=gap, monotonic=monotonic)
-    return BdResult((10.0 ** gap[0] - 1.0) * 100.0, gap[1], monotonic)
+    result = _bjontegaard(anchor_rate, anchor_quality, test_rate, test_quality, rate_axis=True)
+    if math.isnan(result.value):
+        return result
+    return dataclasses.replace(result, value=(10.0 ** result.value - 1.0) * 100.0)
 
 
 def bd_quality(
@@ -108,6 +98,15 @@ def bd_quality(
     test_rate: Sequence[float], test_quality: Sequence[float],
 ) -> BdResult:
     """BD-PSNR (or BD-SSIM): mean quality gain of the test curve at equal rate."""
+    return _bjontegaard(anchor_rate, anchor_quality, test_rate, test_quality, rate_axis=False)
+
+
+def _bjontegaard(
+    anchor_rate: Sequence[float], anchor_quality: Sequence[float],
+    test_rate: Sequence[float], test_quality: Sequence[float], *, rate_axis: bool,
+) -> BdResult:
+    """Mean gap between the two PCHIP curves: of log10 rate over the common quality range
+    (``rate_axis``) or of quality over the common log-rate range."""
     monotonic = _is_monotonic(np.asarray(anchor_rate, float), np.asarray(anchor_quality, float)) and _is_monotonic(
         np.asarray(test_rate, float), np.asarray(test_quality, float)
     )
@@ -115,7 +114,10 @@ def bd_quality(
     for item in (log_a, log_t):
         if isinstance(item, str):
             return BdResult(math.nan, reason=item)
-    anchor, test = _curve(log_a, anchor_quality, "anchor"), _curve(log_t, test_quality, "test")
+    if rate_axis:
+        anchor, test = _curve(anchor_quality, log_a, "anchor"), _curve(test_quality, log_t, "test")
+    else:
+        anchor, test = _curve(log_a, anchor_quality, "anchor"), _curve(log_t, test_quality, "test")
     for item in (anchor, test):
         if isinstance(item, str):
             return BdResult(math.nan, reason=item)

@@ -47,7 +47,6 @@ import io
 import json
 import math
 import os
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -57,6 +56,7 @@ import numpy as np
 import torch
 
 from gscodec_shac import sh_index
+from gscodec_shac.atomic import write_bytes_atomic
 from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.io.cameras import Camera, look_at
@@ -759,16 +759,4 @@ def load_finetuned(path: PathLike) -> tuple[GaussianCloud, ShacLST]:
 
 def atomic_write_bytes(path: Path, data: bytes) -> Path:
     """Write ``data`` to ``path`` via a temporary file in the same folder and a rename."""
-    directory = path.parent if str(path.parent) else Path(".")
-    if not directory.is_dir():
-        raise FinetuneError(f"{path}: output directory {directory} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    return write_bytes_atomic(path, data, error=FinetuneError)
