@@ -65,3 +65,18 @@ def test_non_monotonic_curve_is_flagged():
     bumpy = np.array([30.1, 31.6, 31.2, 33.5])
     assert bd_rate(RATES, PSNR, RATES, bumpy).monotonic is False
     assert bd_rate(RATES, PSNR, RATES * 0.9, PSNR).monotonic is True
+
+
+def test_report_flags_bd_over_a_narrow_overlap():
+    from gscodec_shac.rd.report import bd_table
+
+    def rows(method, rates, psnrs):
+        return [{"scene": "s", "method": method, "rate_point": f"rp{i}", "status": "ok", "bytes": r, "psnr_ref": q}
+                for i, (r, q) in enumerate(zip(rates, psnrs))]
+
+    anchor = rows("baseline", [100, 200, 400, 800], [30.0, 33.0, 36.0, 39.0])
+    wide = rows("wide", [90, 180, 360, 720], [30.5, 33.5, 36.5, 39.5])
+    narrow = rows("narrow", [20, 40, 80, 110], [20.0, 24.0, 28.0, 31.0])  # meets the anchor only at its low end
+    table = {e["method"]: e for e in bd_table(anchor + wide + narrow) if e["metric"] == "psnr_ref"}
+    assert "indicative" not in table["wide"]["note"]
+    assert "BD-quality over" in table["narrow"]["note"] and "indicative only" in table["narrow"]["note"]

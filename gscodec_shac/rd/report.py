@@ -107,9 +107,28 @@ def bd_table(rows: list[dict[str, Any]], anchor: str = "baseline") -> list[dict[
                 "note": "; ".join(
                     [f"BD-rate: {rate.reason} in quality" for _ in [0] if rate.reason]
                     + [f"BD-quality: {quality.reason} in rate" for _ in [0] if quality.reason]
-                    + ([] if rate.monotonic and quality.monotonic else ["quality not increasing with rate"])),
+                    + ([] if rate.monotonic and quality.monotonic else ["quality not increasing with rate"])
+                    + _narrow_overlap_notes(base, column, rate, quality)),
             })
     return table
+
+
+NARROW_OVERLAP = 0.25  # an overlap below this share of the anchor's span is flagged
+
+
+def _narrow_overlap_notes(base: Curve, column: str, rate: Any, quality: Any) -> list[str]:
+    """Flag BD values integrated over a small part of the anchor's range (indicative only)."""
+    notes = []
+    checks = (("BD-rate", rate, base.values(column), "quality"),
+              ("BD-quality", quality, [math.log10(b) for b in base.values("bytes") if b > 0], "rate"))
+    for label, result, raw, axis in checks:
+        values = [v for v in raw if math.isfinite(v)]
+        span = max(values) - min(values) if len(values) > 1 else 0.0
+        if result.ok and result.overlap and span > 0:
+            share = (result.overlap[1] - result.overlap[0]) / span
+            if share < NARROW_OVERLAP:
+                notes.append(f"{label} over {share:.0%} of the anchor's {axis} range: indicative only")
+    return notes
 
 
 def _same_point_changes(base: Curve, curve: Curve, column: str) -> tuple[float | None, float | None, int]:
