@@ -43,9 +43,8 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Mapping
 
-import yaml
-
 from gscodec_shac.errors import RatePointError
+from gscodec_shac.yaml_file import read_yaml_file
 
 ATTRIBUTES = ("positions", "rotation", "scale", "opacity", "sh_dc", "sh_ac", "sh_features", "sh_labels")
 LOSSLESS_ATTRIBUTES = ("positions", "sh_labels")
@@ -204,18 +203,7 @@ def load_rate_point(ref: "str | Path | RatePoint") -> RatePoint:
 def load_rate_point_file(path: str | Path) -> dict[str, RatePoint]:
     """All points of one YAML file, validated, by name."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise RatePointError(f"{path}: rate-point file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise RatePointError(f"{path}: cannot read rate-point file ({exc})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise RatePointError(f"{path}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+    data = read_yaml_file(path, "rate-point file", RatePointError)
     return parse_rate_points(data, str(path), stem=path.stem)
 
 

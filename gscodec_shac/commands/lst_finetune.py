@@ -20,6 +20,8 @@ import json
 import math
 from pathlib import Path
 
+from gscodec_shac.commands._options import comma_floats, resize_cameras
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -61,32 +63,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-def _floats(text: str, what: str) -> list[float]:
-    from gscodec_shac.errors import GscodecError
-
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise GscodecError(f"{what} must be 3 comma-separated numbers, got {text!r}")
-    return values
-
-
-def _resize(cameras: list, args: argparse.Namespace) -> list:
-    from gscodec_shac.errors import GscodecError
-
-    if args.scale is not None:
-        if not (math.isfinite(args.scale) and args.scale > 0):
-            raise GscodecError(f"--scale must be a positive number, got {args.scale}")
-        return [c.scaled(args.scale) for c in cameras]
-    if args.width is not None:
-        if args.width < 1:
-            raise GscodecError(f"--width must be a positive integer, got {args.width}")
-        return [c.resized(args.width, max(1, round(args.width * c.height / c.width))) for c in cameras]
-    return cameras
-
-
 def run(args: argparse.Namespace) -> int:
     from gscodec_shac.errors import GscodecError
 
@@ -115,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         raise GscodecError(f"--cache-gb must be a positive number, got {args.cache_gb}")
     if args.threads < 1:
         raise GscodecError(f"--threads must be at least 1, got {args.threads}")
-    background = _floats(args.background, "--background")
+    background = comma_floats(args.background, "--background")
     if not all(0.0 <= v <= 1.0 for v in background):
         raise GscodecError(f"--background values must lie in [0, 1], got {args.background!r}")
     if args.images and not Path(args.images).is_dir():
@@ -136,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
 
     cloud = read_ply(args.scene)
     if args.cameras:
-        cameras = _resize(load_cameras(args.cameras, args.images), args)
+        cameras = resize_cameras(load_cameras(args.cameras, args.images), args.scale, args.width)
         lacking = [c.name for c in cameras if c.image_path is None]
         if lacking and (args.images or args.targets == "images"):
             where = args.images or "the capture"
@@ -146,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
         if args.targets == "images":
             raise GscodecError("--targets images needs --cameras with ground-truth images (orbit views have none)")
         width = args.width or round(320 * (args.scale or 1.0))
-        cameras = orbit_views(cloud, args.orbit, max(1, width), up=_floats(args.up, "--up"))
+        cameras = orbit_views(cloud, args.orbit, max(1, width), up=comma_floats(args.up, "--up"))
         targets = "original"
     train, held_out = (cameras, []) if args.all_views else test_split(cameras)
     if not train:

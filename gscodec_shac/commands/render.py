@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
+
+from gscodec_shac.commands._options import comma_floats, resize_cameras
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -42,18 +43,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", required=True, help="output directory (created)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
-
-
-def _floats(text: str, what: str, count: int = 3) -> list[float]:
-    from gscodec_shac.errors import GscodecError
-
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != count or not all(math.isfinite(v) for v in values):
-        raise GscodecError(f"{what} must be {count} comma-separated numbers, got {text!r}")
-    return values
 
 
 def _orbit(cloud, views: int, up: list[float], width: int | None, scale: float | None) -> list:
@@ -86,20 +75,6 @@ def _select(cameras: list, args: argparse.Namespace) -> list:
     return test if args.split == "test" else train
 
 
-def _resize(cameras: list, args: argparse.Namespace) -> list:
-    from gscodec_shac.errors import GscodecError
-
-    if args.scale is not None:
-        if not (math.isfinite(args.scale) and args.scale > 0):
-            raise GscodecError(f"--scale must be a positive number, got {args.scale}")
-        return [c.scaled(args.scale) for c in cameras]
-    if args.width is not None:
-        if args.width < 1:
-            raise GscodecError(f"--width must be a positive integer, got {args.width}")
-        return [c.resized(args.width, max(1, round(args.width * c.height / c.width))) for c in cameras]
-    return cameras
-
-
 def run(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm import tqdm
@@ -111,16 +86,16 @@ def run(args: argparse.Namespace) -> int:
     from gscodec_shac.render import Renderer
     from gscodec_shac.render.output import png_name, save_png
 
-    background = _floats(args.background, "--background")
+    background = comma_floats(args.background, "--background")
     if not all(0.0 <= v <= 1.0 for v in background):
         raise GscodecError(f"--background values must lie in [0, 1], got {args.background!r}")
     cloud = read_ply(args.scene)
     if args.cameras:
-        cameras = _resize(_select(load_cameras(args.cameras, args.images_dir), args), args)
+        cameras = resize_cameras(_select(load_cameras(args.cameras, args.images_dir), args), args.scale, args.width)
     else:
         if args.images_dir:
             raise GscodecError("--images-dir needs --cameras (orbit views have no ground truth)")
-        cameras = _select(_orbit(cloud, args.orbit_views, _floats(args.up, "--up"), args.width, args.scale), args)
+        cameras = _select(_orbit(cloud, args.orbit_views, comma_floats(args.up, "--up"), args.width, args.scale), args)
     if not cameras:
         raise GscodecError("no cameras left to render after the selection")
     out = Path(args.out)

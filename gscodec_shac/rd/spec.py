@@ -44,9 +44,8 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
-import yaml
-
 from gscodec_shac.errors import GscodecError
+from gscodec_shac.yaml_file import read_yaml_file
 
 #: Scene inputs that are not Inria PLYs and are converted with splat-transform first.
 CONVERTIBLE_SUFFIXES = (".sog", ".spz", ".splat", ".ksplat", ".json")
@@ -189,18 +188,7 @@ def run_key(scene: str, method: str, rate_point: str, settings_hash: str) -> str
 def load_sweep(path: str | os.PathLike) -> SweepSpec:
     """Read and validate a sweep YAML file."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise SweepSpecError(f"{path}: sweep file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SweepSpecError(f"{path}: cannot read sweep file ({exc})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise SweepSpecError(f"{path}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+    data = read_yaml_file(path, "sweep file", SweepSpecError)
     return parse_sweep(data, source=str(path), base=path.parent)
 
 

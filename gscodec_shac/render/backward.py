@@ -65,13 +65,13 @@ from gscodec_shac.render.projection import (
     P_TAU,
     P_X,
     P_Y,
-    PACK_WIDTH,
     CameraParams,
     alpha_extent,
     camera_params,
     project_into,
 )
 from gscodec_shac.render.raster import ALPHA_MAX, rasterize
+from gscodec_shac.render.renderer import _Workspace
 from gscodec_shac.render.shading import view_colors
 from gscodec_shac.sh import C0, C1, C2, C3
 
@@ -614,18 +614,13 @@ class ParamGrads:
     radii: np.ndarray
 
 
-class _Buffers:
+class _Buffers(_Workspace):
+    """The forward renderer's reused buffers plus those of the backward pass."""
+
     def __init__(self, n: int) -> None:
+        super().__init__(n)
         self.n = n
         self.cov3 = np.empty((n, 6))
-        self.pack_n = np.empty((n, PACK_WIDTH))
-        self.rects_n = np.empty((n, 4), dtype=np.int32)
-        self.radii = np.empty(n, dtype=np.int32)
-        self.keys = np.empty(n, dtype=np.uint64)
-        self.order = np.empty(n, dtype=np.int64)
-        self.pack = np.empty((n, PACK_WIDTH))
-        self.rects = np.empty((n, 4), dtype=np.int32)
-        self.pixels: dict[str, np.ndarray] = {}
         self.lanes = np.empty((LANES, n, GRAD_WIDTH))
 
 
