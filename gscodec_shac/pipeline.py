@@ -22,7 +22,7 @@ import json
 import os
 import time
 import zlib
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -411,9 +411,14 @@ class Decoder:
         mask = self._mask(stream, grid.get("padding"), n, shape[0] * shape[1])
 
         tasks = [task for name, entry in entries.items() for task in self._chunk_tasks(stream, name, entry, shape)]
+        # Largest chunks first (the SH grid dominates), so no worker is left with it at the end.
+        biggest_first = sorted(range(len(tasks)), key=lambda i: -len(tasks[i].chunk.data))
         with ThreadPoolExecutor(self.workers) as pool:
-            planes = list(tqdm(pool.map(_ChunkTask.decode, tasks), total=len(tasks), desc="decode", unit="chunk",
-                               disable=not self.progress, leave=False))
+            futures = {i: pool.submit(tasks[i].decode) for i in biggest_first}
+            for _ in tqdm(as_completed(futures.values()), total=len(tasks), desc="decode", unit="chunk",
+                          disable=not self.progress, leave=False):
+                pass
+            planes = [futures[i].result() for i in range(len(tasks))]
         values = {
             name: _assemble(entry, [(t, p) for t, p in zip(tasks, planes) if t.attribute == name], shape, mask, n)
             for name, entry in entries.items()
@@ -465,7 +470,7 @@ class Decoder:
         if sh.get("ycbcr"):
             features = qz.triplets_from_ycbcr(features)
         if not sh.get("lossless"):
-            features = features.astype(np.float32)
+            features = features.astype(np.float32, copy=False)
         return np.asarray(stage.inverse_transform(features))
 
     def _codec(self, index: Any) -> GridCodec:
