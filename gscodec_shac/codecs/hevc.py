@@ -161,21 +161,24 @@ class HevcCodec(GridCodec):
         streams = split_chunks(data[2:], len(plan), self.name)
         for index, (stream, (first, n_frames, chroma)) in enumerate(zip(streams, plan)):
             depths.add(check_sps(stream, coded_w, coded_h, chroma, index))
-        # FFmpeg decodes without the GIL: the streams of a multi-channel grid go to
-        # parallel threads (one 1024x1024 plane is ~30 ms; 38 of them in series were
-        # the critical path of a 1M-Gaussian decode).
-        if len(streams) == 1:
-            decoded = [_decode_stream(streams[0], 0)]
-        else:
-            with ThreadPoolExecutor(min(len(streams), os.cpu_count() or 1)) as pool:
-                decoded = list(pool.map(_decode_stream, streams, range(len(streams))))
-        for index, (frames, (first, n_frames, chroma)) in enumerate(zip(decoded, plan)):
+        def decode_into_out(index: int) -> None:
+            first, n_frames, chroma = plan[index]
+            frames = _decode_stream(streams[index], index)
             if len(frames) != n_frames:
                 raise BitstreamError(f"hevc stream {index} holds {len(frames)} frames, expected {n_frames}")
             step = 3 if chroma else 1
             for k, frame in enumerate(frames):
                 start = first + k * step
                 out[start : start + step] = _planes_from_frame(frame, index, coded_h, coded_w, chroma)
+
+        # FFmpeg decodes without the GIL: the streams of a multi-channel grid go to
+        # parallel threads (one 1024x1024 plane is ~30 ms; 38 of them in series were
+        # the critical path of a 1M-Gaussian decode). Each thread writes its own planes.
+        if len(streams) == 1:
+            decode_into_out(0)
+        else:
+            with ThreadPoolExecutor(min(len(streams), os.cpu_count() or 1)) as pool:
+                list(pool.map(decode_into_out, range(len(streams))))
         planes = restore_samples(out[:, :height, :width], depths, shift, bit_depth)
         return self._check_decoded(self.name, planes, shape)
 
