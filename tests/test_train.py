@@ -270,6 +270,8 @@ def test_cli_trains_resumes_and_writes_outputs(tiny_capture, tmp_path: Path, cap
     assert cloud.num_gaussians == 450 and cloud.sh_degree == 3 and stage.n_params == 306
     assert read_ply(out / "point_cloud.ply").num_gaussians == 450
     assert len(json.loads((out / "cameras.json").read_text())) == 16
+    held_out = [view["name"] for view in metrics["test"]["views"]]
+    assert [c["img_name"] for c in json.loads((out / "cameras_test.json").read_text())] == held_out
 
 
 def test_nerf_capture_is_composited_on_white_and_resized(tmp_path: Path) -> None:

@@ -478,7 +478,9 @@ def write_outputs(
 ) -> dict[str, Any]:
     """Write ``point_cloud.ply`` (full SH), ``point_cloud.lst.npz`` (LST: the compact S + T form
     of :func:`gscodec_shac.train.finetune.save_compact`), ``cameras.json`` (Inria, every view at
-    the training size) and ``metrics.json`` (per-test-view PSNR / SSIM and their means, sizes,
+    the training size), ``cameras_test.json`` (the held-out views only: what an RD sweep of the
+    model evaluates, unambiguous also where train and test views share names, as in
+    NeRF-synthetic) and ``metrics.json`` (per-test-view PSNR / SSIM and their means, sizes,
     schedule, timings); returns the metrics."""
     from gscodec_shac.io.cameras import write_inria_cameras
     from gscodec_shac.io.ply import write_ply
@@ -499,7 +501,8 @@ def write_outputs(
                      {"source": "gscodec-shac train", "iterations": trainer.iteration})
         files["compact"] = compact.name
     write_inria_cameras(out_dir / "cameras.json", trainer.capture.all_cameras)
-    files["cameras"] = "cameras.json"
+    write_inria_cameras(out_dir / "cameras_test.json", trainer.capture.test_cameras)
+    files.update(cameras="cameras.json", test_cameras="cameras_test.json")
     c = trainer.config
     metrics: dict[str, Any] = {
         "capture": trainer.capture.name,
