@@ -202,6 +202,21 @@ def test_render_views_returns_images_or_writes_pngs(tmp_path):
     assert np.abs(png - expected).max() <= 0.5 + 1e-3
 
 
+def test_views_that_share_a_name_get_separate_pngs(tmp_path):
+    """NeRF-synthetic train and test views are both called r_0: neither PNG may overwrite the other."""
+    from dataclasses import replace
+
+    from gscodec_shac.render.output import png_names
+
+    cloud = random_cloud(np.random.default_rng(2), 60, 0)
+    first, second = cameras()[:2]
+    same_name = [replace(first, name="r_0"), replace(second, name="r_0"), replace(first, name="r_1.png")]
+    paths = render_views(cloud, same_name, tmp_path, progress=False)
+    assert [p.name for p in paths] == ["r_0.png", "r_0_00001.png", "r_1.png"]
+    assert len(list(tmp_path.glob("*.png"))) == 3
+    assert png_names(["a", "a", "a", "b"]) == ["a.png", "a_00001.png", "a_00002.png", "b.png"]
+
+
 def test_warmup_reports_seconds():
     assert warmup() >= 0.0
 

@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     from gscodec_shac.io.ply import read_ply
     from gscodec_shac.metrics import image_metrics, load_image, load_lpips
     from gscodec_shac.render import Renderer
-    from gscodec_shac.render.output import png_name, save_png
+    from gscodec_shac.render.output import png_names, save_png
 
     background = comma_floats(args.background, "--background")
     if not all(0.0 <= v <= 1.0 for v in background):
@@ -108,9 +108,10 @@ def run(args: argparse.Namespace) -> int:
     lpips_model, lpips_reason = load_lpips(args.lpips_weights) if with_truth else (None, None)
     renderer = Renderer(cloud)
     rows = []
+    names = png_names([camera.name for camera in cameras])
     for index, camera in enumerate(tqdm(cameras, desc="render", unit="view", disable=args.quiet)):
         image = renderer.render(camera, background=background).image
-        path = save_png(out / png_name(camera.name, index), image)
+        path = save_png(out / names[index], image)
         row = {"name": camera.name, "png": path.name, "width": camera.width, "height": camera.height}
         if camera.image_path is not None:
             truth = load_image(camera.image_path, background=background, size=(camera.width, camera.height))

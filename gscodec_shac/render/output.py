@@ -36,3 +36,16 @@ def png_name(camera_name: str, index: int) -> str:
     stem = Path(camera_name).stem if Path(camera_name).suffix.lower() in {".png", ".jpg", ".jpeg"} else camera_name
     stem = _UNSAFE.sub("_", stem).strip("._")
     return f"{stem or f'view_{index:05d}'}.png"
+
+
+def png_names(camera_names: list[str]) -> list[str]:
+    """:func:`png_name` for every view, made unique: a name seen before gets its index appended
+    (NeRF-synthetic train and test views share names such as ``r_0``; no view overwrites another)."""
+    names, used = [], set()
+    for index, camera_name in enumerate(camera_names):
+        name = png_name(camera_name, index)
+        if name in used:
+            name = f"{name[:-4]}_{index:05d}.png"
+        used.add(name)
+        names.append(name)
+    return names

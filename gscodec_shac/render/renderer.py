@@ -246,7 +246,7 @@ def render_views(
     """
     from tqdm import tqdm
 
-    from gscodec_shac.render.output import png_name, save_png
+    from gscodec_shac.render.output import png_names, save_png
 
     bg = parse_background(background)
     renderer = Renderer(cloud)
@@ -254,12 +254,14 @@ def render_views(
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     results: list = []
-    for index, camera in enumerate(tqdm(list(cameras), desc="render", unit="view", disable=not progress)):
+    cameras = list(cameras)
+    names = png_names([camera.name for camera in cameras])
+    for index, camera in enumerate(tqdm(cameras, desc="render", unit="view", disable=not progress)):
         image = renderer.render(camera, background=bg).image
         if out is None:
             results.append(image)
         else:
-            path = out / png_name(camera.name, index)
+            path = out / names[index]
             save_png(path, image)
             results.append(path)
     return results
