@@ -161,6 +161,7 @@ class HevcCodec(GridCodec):
         streams = split_chunks(data[2:], len(plan), self.name)
         for index, (stream, (first, n_frames, chroma)) in enumerate(zip(streams, plan)):
             depths.add(check_sps(stream, coded_w, coded_h, chroma, index))
+
         def decode_into_out(index: int) -> None:
             first, n_frames, chroma = plan[index]
             frames = _decode_stream(streams[index], index)
