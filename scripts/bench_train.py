@@ -37,7 +37,7 @@ STAGES = ("project", "colours", "binning", "raster", "raster_backward", "preproc
 
 def time_iterations(trainer, count: int) -> dict:
     """Run ``count`` iterations; medians of wall / CPU seconds, phases and render stages."""
-    walls, cpus, phases, stages, pairs = [], [], [], [], []
+    walls, cpus, phases, stages = [], [], [], []
     trainer.renderer.timings = {}
     for _ in range(count):
         c0 = time.process_time()

@@ -22,7 +22,7 @@ def test_counts_per_degree():
 
 
 def test_ac_matrix_puts_rgb_of_one_coefficient_side_by_side():
-    n, degree = 4, 3
+    n = 4
     rest = np.zeros((n, 15, 3), dtype=np.float32)
     # value encodes (k, channel) so we can read back where it landed
     for k in range(1, 16):

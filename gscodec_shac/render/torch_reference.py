@@ -67,7 +67,6 @@ def render_torch(
     With ``intermediates`` (a dict), the pixel-space 2D means (N, 2) are stored under
     ``"means2d"`` with ``retain_grad()`` so that their gradient can be read after ``backward``.
     """
-    n = means.shape[0]
     width, height = camera.width, camera.height
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     rw = torch.tensor(np.array(camera.R), dtype=torch.float64)
