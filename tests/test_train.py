@@ -247,6 +247,15 @@ def _write_capture(root: Path, capture) -> None:
     plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")]).write(str(root / "input.ply"))
 
 
+def test_capture_with_an_undecodable_image_is_a_capture_error(tiny_capture, tmp_path: Path) -> None:
+    root = tmp_path / "capture"
+    _write_capture(root, tiny_capture)
+    for png in (root / "images").glob("*.png"):
+        png.write_bytes(b"not a png")
+    with pytest.raises(CaptureError, match=r"\.png: cannot be decoded as an image"):
+        load_capture(root)  # the image size is read before any pixels
+
+
 def test_cli_trains_resumes_and_writes_outputs(tiny_capture, tmp_path: Path, capsys) -> None:
     root = tmp_path / "capture"
     _write_capture(root, tiny_capture)

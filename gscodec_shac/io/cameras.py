@@ -302,7 +302,7 @@ def _find_image(directory: Path | None, name: str) -> Path | None:
     return None
 
 
-def _image_size(path: Path) -> tuple[int, int]:
+def image_size(path: Path) -> tuple[int, int]:
     """(width, height) of an image file, read with OpenCV."""
     import cv2
 
@@ -828,7 +828,7 @@ def _first_image_size(path: Path, image_path: Path | None, file_path: str) -> tu
         raise CameraFormatError(
             f"{path}: has no 'w'/'h' keys and its first image {file_path!r} was not found to read the size from"
         )
-    return _image_size(image_path)
+    return image_size(image_path)
 
 
 def _nerf_camera(frame: dict, params: dict, image_path: Path | None, file_path: str) -> Camera:
@@ -919,7 +919,7 @@ def _llff_images(
     files = sorted(p for p in directory.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
     if len(files) != count:
         raise CameraFormatError(f"{path}: has {count} poses but {directory} has {len(files)} images")
-    return [p.name for p in files], files, _image_size(files[0])
+    return [p.name for p in files], files, image_size(files[0])
 
 
 # --------------------------------------------------------------------------- #

@@ -33,8 +33,8 @@ from typing import Sequence
 
 import numpy as np
 
-from gscodec_shac.errors import GscodecError
-from gscodec_shac.io.cameras import Camera, load_cameras, read_nerf_transforms, test_split
+from gscodec_shac.errors import CameraFormatError, GscodecError
+from gscodec_shac.io.cameras import Camera, image_size, load_cameras, read_nerf_transforms, test_split
 
 PathLike = str | os.PathLike
 
@@ -83,15 +83,6 @@ def _image_dir(root: Path, images: str | None) -> Path | None:
     return None
 
 
-def _read_size(path: Path) -> tuple[int, int]:
-    import cv2
-
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise CaptureError(f"{path}: cannot be decoded as an image")
-    return int(image.shape[1]), int(image.shape[0])
-
-
 def target_size(camera: Camera, resolution_scale: float | None, width: int | None) -> tuple[int, int]:
     """Training size of a camera: scaled by ``resolution_scale`` or resized to ``width`` (aspect kept)."""
     if resolution_scale is not None:
@@ -130,7 +121,10 @@ def load_cameras_split(root: PathLike, images: str | None = None) -> tuple[str, 
         for cam in group:
             folder = cam.image_path.parent
             if folder not in sizes:  # captures have one image size per folder
-                sizes[folder] = _read_size(cam.image_path)
+                try:
+                    sizes[folder] = image_size(cam.image_path)
+                except CameraFormatError as exc:  # a capture's image: the capture's error
+                    raise CaptureError(str(exc)) from None
             w, h = sizes[folder]
             resized.append(cam if (cam.width, cam.height) == (w, h) else cam.resized(w, h))
         out.append(resized)
