@@ -175,11 +175,8 @@ class HevcCodec(GridCodec):
         # FFmpeg decodes without the GIL: the streams of a multi-channel grid go to
         # parallel threads (one 1024x1024 plane is ~30 ms; 38 of them in series were
         # the critical path of a 1M-Gaussian decode). Each thread writes its own planes.
-        if len(streams) == 1:
-            decode_into_out(0)
-        else:
-            with ThreadPoolExecutor(min(len(streams), os.cpu_count() or 1)) as pool:
-                list(pool.map(decode_into_out, range(len(streams))))
+        with ThreadPoolExecutor(min(len(streams), os.cpu_count() or 1)) as pool:
+            list(pool.map(decode_into_out, range(len(streams))))
         planes = restore_samples(out[:, :height, :width], depths, shift, bit_depth)
         return self._check_decoded(self.name, planes, shape)
 
