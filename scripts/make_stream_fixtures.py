@@ -1,0 +1,115 @@
+"""Write the legacy-stream fixtures: small ``.gsc`` files and the arrays they decode to.
+
+Files users already have must keep opening. This script encodes two small input PLYs
+(``tests/fixtures/streams/input_sh3.ply``, ``input_sh0.ply``; written once from the seeded
+synthetic scene when absent) with a spread of settings (every SH stage, every lossless
+layout, each grid codec that needs no external binary) and stores, per case,
+
+* ``<version>/<case>.gsc``  the stream written by this version of the codec,
+* ``<version>/<case>.npz``  the arrays it decodes to (float32, grid order),
+
+plus ``<version>/manifest.json`` (the settings, the SHA-256 of each stream and the codec
+versions that made it). ``tests/test_legacy_streams.py`` decodes every stream of every
+version to exactly the stored arrays and, for the current version, re-encodes the inputs
+and compares the hashes (golden hashes). Run it once per container version, never to
+"fix" a failing test:
+
+    python scripts/make_stream_fixtures.py --version 1.0
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+FIXTURES = Path(__file__).resolve().parents[1] / "tests" / "fixtures" / "streams"
+
+#: case -> (input, rate point, SH stage, stage parameters, sort override)
+CASES: dict[str, dict] = {
+    "table3_rp2_none": {"input": "input_sh3.ply", "rate_point": "paper_table3:rp2", "sh": "none", "params": {}},
+    "table3_rp1_pca": {"input": "input_sh3.ply", "rate_point": "paper_table3:rp1", "sh": "pca",
+                       "params": {"energy_retention": 0.95}},
+    "table3_rp3_pca_dc": {"input": "input_sh3.ply", "rate_point": "paper_table3:rp3", "sh": "pca",
+                          "params": {"n_components": 12, "include_dc": True}},
+    "recommended_rp3_lst": {"input": "input_sh3.ply", "rate_point": "shac_recommended:rp3", "sh": "lst",
+                            "params": {}},
+    "mpeg_rp01_trunc_morton": {"input": "input_sh3.ply", "rate_point": "mpeg_ctc_video:rp01", "sh": "trunc",
+                               "params": {"degree": 1}, "sort": "morton"},
+    "gsplat_png_vq": {"input": "input_sh3.ply", "rate_point": "gsplat_png:default", "sh": "vq",
+                      "params": {"n_clusters": 32}},
+    "gscodec_studio_rp0_sh0": {"input": "input_sh0.ply", "rate_point": "gscodec_studio:rp0", "sh": None,
+                               "params": {}, "sort": "random"},
+    "custom_lossless_drop": {"input": "input_sh3.ply", "rate_point": "custom_points.yaml:lossless_drop", "sh": None,
+                             "params": {}},
+}
+
+
+def write_inputs() -> None:
+    """The two input PLYs (only when absent: they are fixtures, not outputs)."""
+    from gscodec_shac.gaussians import GaussianCloud
+    from gscodec_shac.io.ply import write_ply
+    from gscodec_shac.synthetic import make_synthetic_scene
+
+    sh3 = FIXTURES / "input_sh3.ply"
+    if not sh3.exists():
+        write_ply(sh3, make_synthetic_scene(300, seed=7, n_cameras=2, width=32, height=24).cloud)
+    sh0 = FIXTURES / "input_sh0.ply"
+    if not sh0.exists():
+        c = make_synthetic_scene(200, seed=8, n_cameras=2, width=32, height=24).cloud
+        write_ply(sh0, GaussianCloud(means=c.means, scales=c.scales, quats=c.quats, opacities=c.opacities,
+                                     sh_dc=c.sh_dc, sh_rest=np.zeros((c.num_gaussians, 0, 3), np.float32)))
+
+
+def encode_case(case: dict) -> bytes:
+    """The stream of one case, encoded by the current code (single thread, no progress)."""
+    from gscodec_shac.io.ply import read_ply
+    try:  # the codec moved in the 0.2 restructuring; this script serves both layouts
+        from gscodec_shac.codec import Encoder
+    except ImportError:
+        from gscodec_shac.pipeline import Encoder
+
+    cloud = read_ply(FIXTURES / case["input"])
+    rate_point = case["rate_point"]
+    if rate_point.startswith("custom_points.yaml"):
+        rate_point = str(FIXTURES / rate_point)
+    encoder = Encoder(rate_point, sh_stage=case["sh"], sort=case.get("sort"),
+                      sh_params=case["params"] or None, workers=1)
+    return encoder.encode(cloud).to_bytes()
+
+
+def decoded_arrays(data: bytes) -> dict[str, np.ndarray]:
+    try:
+        from gscodec_shac.codec import Decoder
+    except ImportError:
+        from gscodec_shac.pipeline import Decoder
+
+    cloud = Decoder(workers=1).decode(data)
+    return {"means": cloud.means, "scales": cloud.scales, "quats": cloud.quats, "opacities": cloud.opacities,
+            "sh_dc": cloud.sh_dc, "sh_rest": cloud.sh_rest}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", required=True, help="container version folder, e.g. 1.0")
+    args = parser.parse_args()
+    out = FIXTURES / f"v{args.version}"
+    out.mkdir(parents=True, exist_ok=True)
+    write_inputs()
+    manifest = {"container_version": args.version, "cases": {}}
+    for name, case in CASES.items():
+        data = encode_case(case)
+        (out / f"{name}.gsc").write_bytes(data)
+        np.savez_compressed(out / f"{name}.npz", **decoded_arrays(data))
+        header = json.loads(data[20 : 20 + int.from_bytes(data[12:16], "little")])
+        manifest["cases"][name] = {**case, "sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data),
+                                   "codecs": [c["version"] for c in header["codecs"]]}
+        print(f"{name}: {len(data):,} bytes")
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

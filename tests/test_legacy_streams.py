@@ -1,0 +1,65 @@
+"""Files users already have keep opening: every committed stream decodes to its stored arrays.
+
+``tests/fixtures/streams/v<version>/`` holds streams written by each container version
+(``scripts/make_stream_fixtures.py``) with the arrays they decoded to when written. They
+stay forever: a decoder change that alters one value of one of them fails here. For the
+newest version, re-encoding the same inputs with the same settings must give the same
+bytes (golden hashes), unless a grid codec library of a different version is installed
+(the test then says so and skips the hash comparison).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gscodec_shac.codecs.base import get_codec
+from gscodec_shac.io.ply import read_ply
+from gscodec_shac.pipeline import Decoder, Encoder
+
+FIXTURES = Path(__file__).parent / "fixtures" / "streams"
+VERSIONS = sorted((p for p in FIXTURES.glob("v*") if p.is_dir()), key=lambda p: tuple(map(int, p.name[1:].split("."))))
+CASES = [(folder, name) for folder in VERSIONS for name in json.loads((folder / "manifest.json").read_text())["cases"]]
+ARRAYS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
+
+
+def _manifest(folder: Path) -> dict:
+    return json.loads((folder / "manifest.json").read_text())
+
+
+@pytest.mark.parametrize("folder, name", CASES, ids=[f"{f.name}-{n}" for f, n in CASES])
+def test_legacy_stream_decodes_to_the_stored_arrays(folder, name):
+    data = (folder / f"{name}.gsc").read_bytes()
+    assert hashlib.sha256(data).hexdigest() == _manifest(folder)["cases"][name]["sha256"]
+    cloud = Decoder(workers=2).decode(data)
+    with np.load(folder / f"{name}.npz") as expected:
+        for key in ARRAYS:
+            got = getattr(cloud, key)
+            assert got.dtype == expected[key].dtype and got.shape == expected[key].shape, key
+            assert got.tobytes() == expected[key].tobytes(), f"{name}: {key} changed"
+
+
+NEWEST = VERSIONS[-1]
+
+
+@pytest.mark.parametrize("name", list(_manifest(NEWEST)["cases"]))
+def test_encoding_the_fixture_inputs_gives_the_golden_bytes(name):
+    case = _manifest(NEWEST)["cases"][name]
+    rate_point = case["rate_point"]
+    if rate_point.startswith("custom_points.yaml"):
+        rate_point = str(FIXTURES / rate_point)
+    data = (NEWEST / f"{name}.gsc").read_bytes()
+    header = json.loads(data[20 : 20 + int.from_bytes(data[12:16], "little")])  # preamble: 20 bytes
+    installed = [get_codec(c["name"], **c["options"]).version() for c in header["codecs"]]
+    if installed != case["codecs"]:
+        pytest.skip(f"codec libraries differ from the fixture's ({installed} vs {case['codecs']}): bytes may differ")
+    cloud = read_ply(FIXTURES / case["input"])
+    for workers in (1, 2):
+        encoder = Encoder(rate_point, sh_stage=case["sh"], sort=case.get("sort"), sh_params=case["params"] or None,
+                          workers=workers)
+        data = encoder.encode(cloud).to_bytes()
+        assert hashlib.sha256(data).hexdigest() == case["sha256"], f"{name}: encoding changed (workers={workers})"
