@@ -35,7 +35,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from gscodec_shac import sh_index
-from gscodec_shac.bitstream import Bitstream
+from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.shac.base import ShStage, make_stage
@@ -149,7 +149,7 @@ class ShacCompression:
 
     def compress(self, compress_dir: str | os.PathLike, splats: Mapping[str, Any]) -> None:
         """Encode ``splats`` into ``compress_dir/<filename>`` (directory created)."""
-        from gscodec_shac.pipeline import Encoder
+        from gscodec_shac.codec.pipeline import Encoder
 
         Path(compress_dir).mkdir(parents=True, exist_ok=True)
         encoder = Encoder(
@@ -160,7 +160,7 @@ class ShacCompression:
 
     def decompress(self, compress_dir: str | os.PathLike) -> dict[str, Any]:
         """Decode ``compress_dir/<filename>`` into a splats dict (Gaussians in grid order)."""
-        from gscodec_shac.pipeline import Decoder
+        from gscodec_shac.codec.pipeline import Decoder
 
         stream = Bitstream.read(Path(compress_dir) / self.filename)
         return cloud_to_splats(Decoder(progress=self.verbose).decode(stream))

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gscodec_shac.codecs import get_codec
+from gscodec_shac.codec.grid import get_codec
 from gscodec_shac.io.ply import read_ply
 from gscodec_shac.synthetic import make_synthetic_scene
 

@@ -296,7 +296,7 @@ def hevc_bytes(values: np.ndarray, order: np.ndarray, shape: tuple[int, int], qp
     grid = fill_empty(sorting.apply_order(q, order, shape=shape), (order >= 0).reshape(shape))
     planes = np.ascontiguousarray(grid.transpose(2, 0, 1))
     try:
-        from gscodec_shac.codecs import get_codec
+        from gscodec_shac.codec.grid import get_codec
 
         codec = get_codec("hevc", layout="gray", preset="slow")
         return len(codec.encode(planes, 10, qp))

@@ -70,7 +70,7 @@ def encode_case(case: dict) -> bytes:
     try:  # the codec moved in the 0.2 restructuring; this script serves both layouts
         from gscodec_shac.codec import Encoder
     except ImportError:
-        from gscodec_shac.pipeline import Encoder
+        from gscodec_shac.codec.pipeline import Encoder
 
     cloud = read_ply(FIXTURES / case["input"])
     rate_point = case["rate_point"]
@@ -85,7 +85,7 @@ def decoded_arrays(data: bytes) -> dict[str, np.ndarray]:
     try:
         from gscodec_shac.codec import Decoder
     except ImportError:
-        from gscodec_shac.pipeline import Decoder
+        from gscodec_shac.codec.pipeline import Decoder
 
     cloud = Decoder(workers=1).decode(data)
     return {"means": cloud.means, "scales": cloud.scales, "quats": cloud.quats, "opacities": cloud.opacities,

@@ -6,10 +6,10 @@ import zlib
 import numpy as np
 import pytest
 
-from gscodec_shac.bitstream import MAGIC, PREAMBLE_SIZE, Bitstream, is_gsc, write_atomic
+from gscodec_shac.codec.container import MAGIC, PREAMBLE_SIZE, Bitstream, is_gsc, write_atomic
 from gscodec_shac.errors import BitstreamError
-from gscodec_shac.pipeline import Decoder, Encoder
-from gscodec_shac.rate_point import parse_rate_points
+from gscodec_shac.codec.pipeline import Decoder, Encoder
+from gscodec_shac.codec.rate_points import parse_rate_points
 
 CASE_SECONDS = 20.0
 

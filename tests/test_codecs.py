@@ -7,9 +7,9 @@ import zlib
 import numpy as np
 import pytest
 
-from gscodec_shac.codecs import available_codecs, get_codec
-from gscodec_shac.codecs.hm import find_hm
-from gscodec_shac.codecs.raw import pack_bits, unpack_bits
+from gscodec_shac.codec.grid import available_codecs, get_codec
+from gscodec_shac.codec.grid.hm import find_hm
+from gscodec_shac.codec.grid.raw import pack_bits, unpack_bits
 from gscodec_shac.errors import BitstreamError, CodecUnavailableError, ValidationError
 
 SHAPE = (3, 64, 48)

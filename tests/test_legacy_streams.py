@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gscodec_shac.codecs.base import get_codec
+from gscodec_shac.codec.grid.base import get_codec
 from gscodec_shac.io.ply import read_ply
-from gscodec_shac.pipeline import Decoder, Encoder
+from gscodec_shac.codec.pipeline import Decoder, Encoder
 
 FIXTURES = Path(__file__).parent / "fixtures" / "streams"
 VERSIONS = sorted((p for p in FIXTURES.glob("v*") if p.is_dir()), key=lambda p: tuple(map(int, p.name[1:].split("."))))

@@ -8,13 +8,13 @@ import numpy as np
 import plyfile
 import pytest
 
-from gscodec_shac import quantize as qz
-from gscodec_shac.bitstream import Bitstream
+from gscodec_shac.codec import quantize as qz
+from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.cli import main
 from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac.io.ply import read_ply, write_ply
-from gscodec_shac.pipeline import ATTRIBUTES, Decoder, Encoder, decode_file, encode_file, feature_degrees
-from gscodec_shac.rate_point import parse_rate_points
+from gscodec_shac.codec.pipeline import ATTRIBUTES, Decoder, Encoder, decode_file, encode_file, feature_degrees
+from gscodec_shac.codec.rate_points import parse_rate_points
 from gscodec_shac.shac.base import StageState, make_stage
 from gscodec_shac.synthetic import make_synthetic_scene
 

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from gscodec_shac import quantize as qz
+from gscodec_shac.codec import quantize as qz
 from gscodec_shac.errors import ValidationError
 
 

@@ -4,8 +4,8 @@ import pytest
 import yaml
 
 from gscodec_shac.errors import RatePointError
-from gscodec_shac.pipeline import Decoder, Encoder
-from gscodec_shac.rate_point import (
+from gscodec_shac.codec.pipeline import Decoder, Encoder
+from gscodec_shac.codec.rate_points import (
     builtin_rate_point_files,
     list_rate_points,
     load_rate_point,

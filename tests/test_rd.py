@@ -138,7 +138,7 @@ def test_a_dying_worker_costs_only_its_run(tmp_path):
 
 
 def test_sort_cache_gives_identical_bytes(tmp_path, small_cloud):
-    from gscodec_shac.pipeline import Encoder
+    from gscodec_shac.codec.pipeline import Encoder
     from gscodec_shac.rd.sortcache import SortCachingEncoder
 
     plain = Encoder("paper_table3:rp2", sh_stage="pca", sh_params={"energy_retention": 0.97}).encode(small_cloud)

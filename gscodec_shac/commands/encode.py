@@ -45,8 +45,8 @@ def run(args: argparse.Namespace) -> int:
     import json
 
     from gscodec_shac.errors import GscodecError
-    from gscodec_shac.pipeline import encode_file
-    from gscodec_shac.rate_point import load_rate_point
+    from gscodec_shac.codec.pipeline import encode_file
+    from gscodec_shac.codec.rate_points import load_rate_point
 
     point = load_rate_point(args.rate_point)
     stage = args.sh or point.sh_stage

@@ -20,17 +20,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from gscodec_shac.bitstream import is_gsc
+    from gscodec_shac.codec.container import is_gsc
 
     if is_gsc(args.file):
-        from gscodec_shac.bitstream import Bitstream
+        from gscodec_shac.codec.container import Bitstream
 
         summary = describe_gsc(Bitstream.read(args.file), args.file)
         print(json.dumps(summary, indent=2) if args.json else format_gsc_summary(summary))
         return 0
 
     from gscodec_shac.io.ply import read_ply
-    from gscodec_shac.summary import describe_cloud, format_cloud_summary
+    from gscodec_shac.codec.summary import describe_cloud, format_cloud_summary
 
     cloud = read_ply(args.file)
     summary = describe_cloud(cloud, args.file)
@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def describe_gsc(stream: Any, path: str) -> dict[str, Any]:
-    """A JSON-serialisable summary of a parsed .gsc :class:`~gscodec_shac.bitstream.Bitstream`."""
+    """A JSON-serialisable summary of a parsed .gsc :class:`~gscodec_shac.codec.container.Bitstream`."""
     header = stream.header
     n = int(header.get("num_gaussians", 0)) or 1
     total = stream.total_bytes()

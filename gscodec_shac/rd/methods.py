@@ -109,7 +109,7 @@ def _is_float(lo: float, hi: float) -> Callable[[Any], bool]:
 def codec_run(ctx: RunContext, stage: Any, sh_params: dict[str, Any], cloud: GaussianCloud | None = None,
               fit_stage: bool = True) -> Outcome:
     """Encode with our pipeline (sort cached), serialise, decode."""
-    from gscodec_shac.pipeline import Decoder
+    from gscodec_shac.codec.pipeline import Decoder
     from gscodec_shac.rd.sortcache import SortCachingEncoder
 
     cloud = ctx.load_cloud() if cloud is None else cloud

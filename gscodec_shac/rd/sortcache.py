@@ -1,4 +1,4 @@
-"""An :class:`~gscodec_shac.pipeline.Encoder` that sorts each distinct cloud once per sweep.
+"""An :class:`~gscodec_shac.codec.pipeline.Encoder` that sorts each distinct cloud once per sweep.
 
 Sorting (PLAS) is a third or more of an encode and depends only on the pruned cloud's
 geometry/colour and the rate point's sort settings, which are the same for every SH
@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from gscodec_shac.gaussians import GaussianCloud
-from gscodec_shac.pipeline import Encoder
+from gscodec_shac.codec.pipeline import Encoder
 from gscodec_shac.rd.cache import file_lock, save_npz
 
 _CACHE_VERSION = "sortcache-1"

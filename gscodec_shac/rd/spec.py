@@ -330,7 +330,7 @@ def _settings(raw: Any, err: _Errors, base: Path) -> EvalSettings:
 
 
 def _rate_points(raw: Any, err: _Errors, base: Path) -> tuple[str, ...]:
-    from gscodec_shac.rate_point import builtin_rate_point_files, load_rate_point
+    from gscodec_shac.codec.rate_points import builtin_rate_point_files, load_rate_point
 
     if isinstance(raw, str):
         raw = [raw]
@@ -342,7 +342,7 @@ def _rate_points(raw: Any, err: _Errors, base: Path) -> tuple[str, ...]:
         if not isinstance(ref, str) or not ref:
             raise err(key, f"must be a rate-point reference like paper_table3:rp1, got {ref!r}")
         if ":" not in ref and ref in builtin:  # a whole shipped file: every point in it
-            from gscodec_shac.rate_point import load_rate_point_file
+            from gscodec_shac.codec.rate_points import load_rate_point_file
 
             refs += [f"{ref}:{name}" for name in load_rate_point_file(builtin[ref])]
             continue

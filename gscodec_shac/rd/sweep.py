@@ -57,7 +57,7 @@ def default_threads(slots: int) -> int:
 
 def plan(spec: SweepSpec, scenes: dict[str, PreparedScene], out_dir: Path, threads: int) -> list[RunTask]:
     """Every run of the sweep, scene by scene, method by method, rate point by rate point."""
-    from gscodec_shac.rate_point import load_rate_point
+    from gscodec_shac.codec.rate_points import load_rate_point
 
     points = {ref: load_rate_point(ref) for ref in spec.rate_points}
     tasks = []

@@ -9,7 +9,7 @@ a per-dimension min/max.
 labels as one float column (exact: labels < 2**24), and the class sets
 ``lossless_features = True`` and :attr:`feature_bits`: a pipeline must code that
 column losslessly as ``feature_bits``-bit integers, not through the min/max
-quantiser (:mod:`gscodec_shac.pipeline` does). Keeping the float column keeps
+quantiser (:mod:`gscodec_shac.codec.pipeline` does). Keeping the float column keeps
 the :class:`~gscodec_shac.shac.base.ShStage` contract unchanged for every caller.
 
 **Fitting on a CPU.** A flat k-means with 65,536 centres costs N x K x K'

@@ -32,13 +32,13 @@ import numpy as np
 from tqdm.auto import tqdm
 
 import gscodec_shac
-from gscodec_shac import quantize as qz
+from gscodec_shac.codec import quantize as qz
 from gscodec_shac import sh_index
-from gscodec_shac.bitstream import Bitstream
-from gscodec_shac.codecs.base import GridCodec, get_codec
+from gscodec_shac.codec.container import Bitstream
+from gscodec_shac.codec.grid.base import GridCodec, get_codec
 from gscodec_shac.errors import BitstreamError, CodecUnavailableError, GscodecError, ValidationError
 from gscodec_shac.gaussians import GaussianCloud
-from gscodec_shac.rate_point import AttributeSpec, RatePoint, load_rate_point
+from gscodec_shac.codec.rate_points import AttributeSpec, RatePoint, load_rate_point
 from gscodec_shac.shac.base import ShStage, StageState, make_stage, stage_from_state
 
 #: Decoder limits: anything larger is treated as a corrupt header, before allocating.

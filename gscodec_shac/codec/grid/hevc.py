@@ -2,7 +2,7 @@
 
 Stream layout: two bytes, ``layout id`` (0 gray, 1 yuv444, 2 frames) and the
 left ``shift`` applied to the samples, then length-prefixed Annex-B HEVC
-elementary streams (:func:`~gscodec_shac.codecs.base.join_chunks`):
+elementary streams (:func:`~gscodec_shac.codec.grid.base.join_chunks`):
 
 * ``gray``: one single-frame 4:0:0 stream per channel;
 * ``yuv444``: one single-frame 4:4:4 stream per group of three channels, channel
@@ -39,7 +39,7 @@ from concurrent.futures import ThreadPoolExecutor
 import av
 import numpy as np
 
-from gscodec_shac.codecs.base import GridCodec, join_chunks, register_codec, split_chunks
+from gscodec_shac.codec.grid.base import GridCodec, join_chunks, register_codec, split_chunks
 from gscodec_shac.errors import BitstreamError, CodecUnavailableError, ValidationError
 
 LAYOUTS = ("gray", "yuv444", "frames")

@@ -149,7 +149,7 @@ def _load_builtin_codecs() -> None:
 
     for module in ("raw", "png", "jpegls", "hevc", "hm"):
         try:
-            importlib.import_module(f"gscodec_shac.codecs.{module}")
+            importlib.import_module(f"gscodec_shac.codec.grid.{module}")
         except ModuleNotFoundError as exc:
-            if exc.name != f"gscodec_shac.codecs.{module}":
+            if exc.name != f"gscodec_shac.codec.grid.{module}":
                 raise

@@ -29,7 +29,7 @@ layout of ``positions``) codes the integer labels of the ``vq`` stage.
 Positions and labels are always lossless.
 
 References: ``"paper_table3:rp2"`` (a file shipped in
-``gscodec_shac/rate_points/``), ``"my.yaml:fast"`` or ``"my.yaml"`` (a file
+``rate_points/`` at the repository root, shipped in the wheel), ``"my.yaml:fast"`` or ``"my.yaml"`` (a file
 with a single point). Every problem raises :class:`RatePointError` naming the
 file, the point, the key and what is wrong.
 """
@@ -170,10 +170,15 @@ class RatePoint:
 
 
 # ------------------------------------------------------------------ loading
+def rate_point_folder() -> Path:
+    """Where the shipped rate points are: inside an installed wheel, else the checkout's ``rate_points/``."""
+    installed = Path(str(resources.files("gscodec_shac"))) / "rate_points"
+    return installed if installed.is_dir() else Path(__file__).resolve().parents[2] / "rate_points"
+
+
 def builtin_rate_point_files() -> dict[str, Path]:
     """Shipped rate-point files by stem (``"paper_table3"`` -> path)."""
-    folder = resources.files("gscodec_shac") / "rate_points"
-    return {Path(str(p)).stem: Path(str(p)) for p in folder.iterdir() if str(p).endswith((".yaml", ".yml"))}
+    return {p.stem: p for p in sorted(rate_point_folder().iterdir()) if p.suffix in (".yaml", ".yml")}
 
 
 def list_rate_points() -> list[str]:
@@ -396,7 +401,7 @@ def _mapping(where: _Where, raw: dict, name: str, key: str | None = None) -> dic
 
 
 def _check_codec(where: _Where, name: str, qp: Any, key: str) -> None:
-    from gscodec_shac.codecs.base import CODECS, _load_builtin_codecs
+    from gscodec_shac.codec.grid.base import CODECS, _load_builtin_codecs
 
     _load_builtin_codecs()
     if name not in CODECS:

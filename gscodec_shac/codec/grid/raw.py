@@ -15,7 +15,7 @@ import zlib
 
 import numpy as np
 
-from gscodec_shac.codecs.base import GridCodec, register_codec
+from gscodec_shac.codec.grid.base import GridCodec, register_codec
 from gscodec_shac.errors import BitstreamError, ValidationError
 
 _ENTROPY_IDS = {"none": 0, "zlib": 1, "lzma": 2}

@@ -16,7 +16,7 @@ import struct
 import av
 import numpy as np
 
-from gscodec_shac.codecs.base import GridCodec, join_chunks, register_codec, split_chunks
+from gscodec_shac.codec.grid.base import GridCodec, join_chunks, register_codec, split_chunks
 from gscodec_shac.errors import BitstreamError
 
 _SOI, _SOF55, _EOI = b"\xff\xd8", b"\xff\xf7", b"\xff\xd9"

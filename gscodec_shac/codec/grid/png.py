@@ -2,7 +2,7 @@
 
 Each plane becomes one single-channel PNG, 16-bit when ``bit_depth > 8`` and
 8-bit otherwise, and the PNGs are joined with uint32 length prefixes
-(:func:`~gscodec_shac.codecs.base.join_chunks`). Before anything is decoded the
+(:func:`~gscodec_shac.codec.grid.base.join_chunks`). Before anything is decoded the
 PNG header (IHDR) is checked against the expected size, so a foreign or
 oversized image is rejected without being allocated.
 """
@@ -15,7 +15,7 @@ import zlib
 import cv2
 import numpy as np
 
-from gscodec_shac.codecs.base import GridCodec, join_chunks, register_codec, split_chunks
+from gscodec_shac.codec.grid.base import GridCodec, join_chunks, register_codec, split_chunks
 from gscodec_shac.errors import BitstreamError, ValidationError
 
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"

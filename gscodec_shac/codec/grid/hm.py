@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gscodec_shac.codecs.base import GridCodec, join_chunks, register_codec, split_chunks
-from gscodec_shac.codecs.hevc import (
+from gscodec_shac.codec.grid.base import GridCodec, join_chunks, register_codec, split_chunks
+from gscodec_shac.codec.grid.hevc import (
     LAYOUTS,
     check_qp,
     check_sps,
