@@ -149,7 +149,7 @@ class ShacCompression:
 
     def compress(self, compress_dir: str | os.PathLike, splats: Mapping[str, Any]) -> None:
         """Encode ``splats`` into ``compress_dir/<filename>`` (directory created)."""
-        from gscodec_shac.codec.pipeline import Encoder
+        from gscodec_shac.codec import Encoder
 
         Path(compress_dir).mkdir(parents=True, exist_ok=True)
         encoder = Encoder(
@@ -160,7 +160,7 @@ class ShacCompression:
 
     def decompress(self, compress_dir: str | os.PathLike) -> dict[str, Any]:
         """Decode ``compress_dir/<filename>`` into a splats dict (Gaussians in grid order)."""
-        from gscodec_shac.codec.pipeline import Decoder
+        from gscodec_shac.codec import Decoder
 
         stream = Bitstream.read(Path(compress_dir) / self.filename)
         return cloud_to_splats(Decoder(progress=self.verbose).decode(stream))

@@ -50,7 +50,7 @@ def _peak_mb() -> float:
 
 def child_encode(args: argparse.Namespace) -> dict:
     from gscodec_shac.io.ply import read_ply
-    from gscodec_shac.codec.pipeline import Encoder
+    from gscodec_shac.codec import Encoder
 
     tic = time.perf_counter()
     cloud = read_ply(args.ply)
@@ -76,7 +76,7 @@ def child_encode(args: argparse.Namespace) -> dict:
 
 def child_decode(args: argparse.Namespace) -> dict:
     from gscodec_shac.io.ply import write_ply
-    from gscodec_shac.codec.pipeline import Decoder
+    from gscodec_shac.codec import Decoder
 
     data = Path(args.gsc).read_bytes()
     times, cloud = [], None

@@ -67,10 +67,7 @@ def write_inputs() -> None:
 def encode_case(case: dict) -> bytes:
     """The stream of one case, encoded by the current code (single thread, no progress)."""
     from gscodec_shac.io.ply import read_ply
-    try:  # the codec moved in the 0.2 restructuring; this script serves both layouts
-        from gscodec_shac.codec import Encoder
-    except ImportError:
-        from gscodec_shac.codec.pipeline import Encoder
+    from gscodec_shac.codec import Encoder
 
     cloud = read_ply(FIXTURES / case["input"])
     rate_point = case["rate_point"]
@@ -82,10 +79,7 @@ def encode_case(case: dict) -> bytes:
 
 
 def decoded_arrays(data: bytes) -> dict[str, np.ndarray]:
-    try:
-        from gscodec_shac.codec import Decoder
-    except ImportError:
-        from gscodec_shac.codec.pipeline import Decoder
+    from gscodec_shac.codec import Decoder
 
     cloud = Decoder(workers=1).decode(data)
     return {"means": cloud.means, "scales": cloud.scales, "quats": cloud.quats, "opacities": cloud.opacities,

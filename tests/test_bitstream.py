@@ -8,7 +8,7 @@ import pytest
 
 from gscodec_shac.codec.container import MAGIC, PREAMBLE_SIZE, Bitstream, is_gsc, write_atomic
 from gscodec_shac.errors import BitstreamError
-from gscodec_shac.codec.pipeline import Decoder, Encoder
+from gscodec_shac.codec import Decoder, Encoder
 from gscodec_shac.codec.rate_points import parse_rate_points
 
 CASE_SECONDS = 20.0

@@ -19,7 +19,7 @@ import pytest
 
 from gscodec_shac.codec.grid.base import get_codec
 from gscodec_shac.io.ply import read_ply
-from gscodec_shac.codec.pipeline import Decoder, Encoder
+from gscodec_shac.codec import Decoder, Encoder
 
 FIXTURES = Path(__file__).parent / "fixtures" / "streams"
 VERSIONS = sorted((p for p in FIXTURES.glob("v*") if p.is_dir()), key=lambda p: tuple(map(int, p.name[1:].split("."))))

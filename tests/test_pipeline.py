@@ -13,7 +13,8 @@ from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.cli import main
 from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac.io.ply import read_ply, write_ply
-from gscodec_shac.codec.pipeline import ATTRIBUTES, Decoder, Encoder, decode_file, encode_file, feature_degrees
+from gscodec_shac.codec import Decoder, Encoder, decode_file, encode_file
+from gscodec_shac.codec.attributes import ATTRIBUTES
 from gscodec_shac.codec.rate_points import parse_rate_points
 from gscodec_shac.shac.base import StageState, make_stage
 from gscodec_shac.synthetic import make_synthetic_scene
@@ -115,10 +116,10 @@ def test_qp_ladder_follows_sh_degrees(small_cloud):
 
 def test_feature_degrees_per_stage(small_cloud):
     ac = small_cloud.ac_matrix()
-    assert feature_degrees(make_stage("none").fit(ac), 45, 3) == [1] * 9 + [2] * 15 + [3] * 21
-    assert feature_degrees(make_stage("trunc", degree=2).fit(ac), 24, 3) == [1] * 9 + [2] * 15
-    assert feature_degrees(make_stage("pca", n_components=21).fit(ac), 21, 3) == [1] * 9 + [2] * 12
-    assert feature_degrees(make_stage("lst").fit(ac), 21, 3) == [1] * 9 + [2] * 6 + [3] * 6
+    assert make_stage("none").fit(ac).feature_degrees(45) == [1] * 9 + [2] * 15 + [3] * 21
+    assert make_stage("trunc", degree=2).fit(ac).feature_degrees(24) == [1] * 9 + [2] * 15
+    assert make_stage("pca", n_components=21).fit(ac).feature_degrees(21) == [1] * 9 + [2] * 12
+    assert make_stage("lst").fit(ac).feature_degrees(21) == [1] * 9 + [2] * 6 + [3] * 6
 
 
 # ------------------------------------------------------ determinism, side info

@@ -4,7 +4,7 @@ import pytest
 import yaml
 
 from gscodec_shac.errors import RatePointError
-from gscodec_shac.codec.pipeline import Decoder, Encoder
+from gscodec_shac.codec import Decoder, Encoder
 from gscodec_shac.codec.rate_points import (
     builtin_rate_point_files,
     list_rate_points,
@@ -123,7 +123,7 @@ def test_unknown_references(ref, message):
         ({"points": {"a": {"qp": {"positions": 10}}}}, "qp.positions", "losslessly"),
         ({"points": {"a": {"codec": "webp2"}}}, "attributes.positions.codec", "unknown codec 'webp2'"),
         ({"points": {"a": {"codec": "png", "qp": {"scale": 10}}}}, "attributes.scale.codec", "lossless only"),
-        ({"points": {"a": {"bits": 20}}}, "bits", "1-16"),
+        ({"points": {"a": {"bits": 20}}}, "bits", "1..16"),
         ({"points": {"a": {"bits": "ten"}}}, "bits", "integer"),
         ({"points": {"a": {"colour": "rgb"}}}, "colour", "unknown key"),
         ({"points": {"a": {"color": "hsv"}}}, "color", "must be one of"),

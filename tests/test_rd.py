@@ -138,15 +138,17 @@ def test_a_dying_worker_costs_only_its_run(tmp_path):
 
 
 def test_sort_cache_gives_identical_bytes(tmp_path, small_cloud):
-    from gscodec_shac.codec.pipeline import Encoder
-    from gscodec_shac.rd.sortcache import SortCachingEncoder
+    from gscodec_shac.codec import Encoder
+    from gscodec_shac.rd.sortcache import cached_grid_order
 
     plain = Encoder("paper_table3:rp2", sh_stage="pca", sh_params={"energy_retention": 0.97}).encode(small_cloud)
-    first = SortCachingEncoder("paper_table3:rp2", sh_stage="pca", sh_params={"energy_retention": 0.97}, cache_dir=tmp_path)
-    second = SortCachingEncoder("paper_table3:rp2", sh_stage="none", cache_dir=tmp_path)
-    assert first.encode(small_cloud).to_bytes() == plain.to_bytes() and first.sort_cached_ is False
+    first = Encoder("paper_table3:rp2", sh_stage="pca", sh_params={"energy_retention": 0.97})
+    grid, cached, _ = cached_grid_order(first, small_cloud, tmp_path)
+    assert first.encode(small_cloud, grid=grid).to_bytes() == plain.to_bytes() and cached is False
+    second = Encoder("paper_table3:rp2", sh_stage="none")
+    grid, cached, _ = cached_grid_order(second, small_cloud, tmp_path)
     uncached_none = Encoder("paper_table3:rp2", sh_stage="none").encode(small_cloud).to_bytes()
-    assert second.encode(small_cloud).to_bytes() == uncached_none and second.sort_cached_ is True
+    assert second.encode(small_cloud, grid=grid).to_bytes() == uncached_none and cached is True
     assert len(list(tmp_path.glob("sort-*.npz"))) == 1
 
 

@@ -17,7 +17,7 @@ import pytest
 
 from gscodec_shac import sh_index
 from gscodec_shac.io.ply import read_ply
-from gscodec_shac.codec.pipeline import Encoder, decode_file
+from gscodec_shac.codec import Encoder, decode_file
 
 PACKAGE = "@playcanvas/splat-transform"
 PREFIX = Path(os.environ.get("GSCODEC_SHAC_NPM_PREFIX", Path.home() / ".cache" / "gscodec-shac" / "npm"))

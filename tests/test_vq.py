@@ -36,7 +36,7 @@ def test_tree_is_close_to_flat_kmeans(small_cloud):
 def test_features_are_one_integer_label_column(small_cloud):
     ac = small_cloud.ac_matrix()
     stage = make_stage("vq", n_clusters=300, centroid_bits=6)
-    assert stage.lossless_features
+    assert stage.feature_kind == "labels"
     features = stage.fit_transform(ac)
     assert features.shape == (2000, 1) and stage.n_features == 1
     assert np.all(features == np.round(features)) and features.min() >= 0 and features.max() < 300

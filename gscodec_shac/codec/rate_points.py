@@ -43,7 +43,10 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Mapping
 
+from gscodec_shac.codec.grid.base import CODECS
 from gscodec_shac.errors import RatePointError
+from gscodec_shac.shac.base import STAGES, ShStage
+from gscodec_shac.validate import Where
 from gscodec_shac.yaml_file import read_yaml_file
 
 ATTRIBUTES = ("positions", "rotation", "scale", "opacity", "sh_dc", "sh_ac", "sh_features", "sh_labels")
@@ -137,7 +140,8 @@ class RatePoint:
             stage = sh_stage or self.sh_stage
             base = dict(self.sh_params) if stage == self.sh_stage else {}
             base.update(sh_params or {})
-            _check_stage(stage, None, "sh.stage")
+            if stage not in STAGES:
+                raise RatePointError(f"unknown SH stage {stage!r}; known: {', '.join(STAGES.names())}")
             point = dataclasses.replace(point, sh_stage=stage, sh_params=base)
         if sort_method is not None or seed is not None:
             sort = point.sort
@@ -214,10 +218,10 @@ def load_rate_point_file(path: str | Path) -> dict[str, RatePoint]:
 
 def parse_rate_points(data: Any, source: str, stem: str = "") -> dict[str, RatePoint]:
     """Validate an already-parsed rate-point document (see module docstring)."""
-    where = _Where(source)
+    where = Where(source, RatePointError)
     if not isinstance(data, dict):
         raise where.error("", "a rate-point file must be a mapping with 'points'")
-    where.unknown(data, _FILE_KEYS, "")
+    where.only(data, _FILE_KEYS)
     defaults = data.get("defaults") or {}
     if not isinstance(defaults, dict):
         raise where.error("defaults", "must be a mapping")
@@ -228,10 +232,7 @@ def parse_rate_points(data: Any, source: str, stem: str = "") -> dict[str, RateP
     for name, raw in points.items():
         if not isinstance(name, str) or not name or ":" in name:
             raise where.error(f"points.{name}", "point names must be non-empty strings without ':'")
-        if raw is None:
-            raw = {}
-        if not isinstance(raw, dict):
-            raise where.error(f"points.{name}", "must be a mapping")
+        raw = where.mapping(raw, f"points.{name}")
         merged = _deep_merge(defaults, raw)
         merged.setdefault("description", data.get("description", ""))
         out[name] = _build_point(merged, source, f"{stem}:{name}" if stem else name, point=name)
@@ -239,36 +240,15 @@ def parse_rate_points(data: Any, source: str, stem: str = "") -> dict[str, RateP
 
 
 # -------------------------------------------------------------- validation
-class _Where:
-    """Error messages that name the file, point and key."""
-
-    def __init__(self, source: str, point: str | None = None) -> None:
-        self.source, self.point = source, point
-
-    def error(self, key: str, problem: str) -> RatePointError:
-        parts = [self.source]
-        if self.point:
-            parts.append(f"point {self.point!r}")
-        if key:
-            parts.append(f"key {key!r}")
-        return RatePointError(": ".join(parts) + f": {problem}")
-
-    def unknown(self, mapping: dict, allowed: set[str], prefix: str) -> None:
-        extra = sorted(str(k) for k in set(mapping) - allowed)
-        if extra:
-            key = f"{prefix}.{extra[0]}" if prefix else extra[0]
-            raise self.error(key, f"unknown key (allowed: {', '.join(sorted(allowed))})")
-
-
 def _build_point(raw: dict, source: str, full_name: str, point: str | None = None) -> RatePoint:
-    where = _Where(source, point or full_name)
-    where.unknown(raw, _POINT_KEYS, "")
-    codec = _string(where, raw, "codec", "hevc")
-    options = _mapping(where, raw, "codec_options")
-    bits = _bits(where, raw.get("bits", 10), "bits")
-    color = _choice(where, raw.get("color", "rgb"), COLORS, "color")
-    qps = _mapping(where, raw, "qp")
-    overrides = _mapping(where, raw, "attributes")
+    where = Where(source, RatePointError, f"point {point or full_name!r}")
+    where.only(raw, _POINT_KEYS)
+    codec = where.string(raw.get("codec", "hevc"), "codec")
+    options = where.mapping(raw.get("codec_options"), "codec_options")
+    bits = where.integer(raw.get("bits", 10), "bits", 1, 16)
+    color = where.choice(raw.get("color", "rgb"), COLORS, "color")
+    qps = where.mapping(raw.get("qp"), "qp")
+    overrides = where.mapping(raw.get("attributes"), "attributes")
     for key in list(qps) + list(overrides):
         if key not in ATTRIBUTES:
             prefix = "qp" if key in qps else "attributes"
@@ -278,19 +258,17 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
     for name in ATTRIBUTES:
         if name in ("sh_features", "sh_labels") and name not in overrides and name not in qps:
             continue
-        over = overrides.get(name) or {}
-        if not isinstance(over, dict):
-            raise where.error(f"attributes.{name}", "must be a mapping")
-        where.unknown(over, _ATTRIBUTE_KEYS, f"attributes.{name}")
+        over = where.mapping(overrides.get(name), f"attributes.{name}")
+        where.only(over, _ATTRIBUTE_KEYS, f"attributes.{name}")
         default_bits = 16 if name == "positions" else bits
-        spec_codec = _string(where, over, "codec", codec, f"attributes.{name}.codec")
+        spec_codec = where.string(over.get("codec", codec), f"attributes.{name}.codec")
         inherited = options if spec_codec == codec else {}  # options belong to the file's codec
-        spec_options = {**inherited, **_mapping(where, over, "codec_options", f"attributes.{name}.codec_options")}
-        spec_bits = _bits(where, over.get("bits", default_bits), f"attributes.{name}.bits")
+        spec_options = {**inherited, **where.mapping(over.get("codec_options"), f"attributes.{name}.codec_options")}
+        spec_bits = where.integer(over.get("bits", default_bits), f"attributes.{name}.bits", 1, 16)
         qp_key = f"attributes.{name}.qp" if "qp" in over else f"qp.{name}"
         qp = _qp(where, over["qp"] if "qp" in over else qps.get(name), qp_key, ladder=name in ("sh_ac", "sh_features"))
         default_layout = "split8" if name in LOSSLESS_ATTRIBUTES else "single"
-        layout = _choice(where, over.get("layout", default_layout), LAYOUTS, f"attributes.{name}.layout")
+        layout = where.choice(over.get("layout", default_layout), LAYOUTS, f"attributes.{name}.layout")
         if name in LOSSLESS_ATTRIBUTES and qp is not None:
             raise where.error(qp_key, f"{name} are coded losslessly; remove the QP")
         _check_codec(where, spec_codec, qp, f"attributes.{name}.codec")
@@ -306,13 +284,10 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
         raise where.error("sh", "must be a mapping like {stage: pca, energy_retention: 0.99}")
     sh = dict(sh)
     stage = sh.pop("stage", "none")
-    _check_stage(stage, where, "sh.stage")
-    for key in sh:
-        if not isinstance(key, str):
-            raise where.error(f"sh.{key}", "stage parameter names must be strings")
+    sh = _stage_class(stage, where, "sh.stage").check_params(sh, where, "sh")
 
-    sort_raw = _mapping(where, raw, "sort")
-    where.unknown(sort_raw, _SORT_KEYS, "sort")
+    sort_raw = where.mapping(raw.get("sort"), "sort")
+    where.only(sort_raw, _SORT_KEYS, "sort")
     weights_raw = sort_raw.get("weights", {})
     if not isinstance(weights_raw, dict):
         raise where.error("sort.weights", "must be a mapping of feature -> weight")
@@ -324,19 +299,19 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
             raise where.error(f"sort.weights.{key}", f"must be a number >= 0, got {value!r}")
         weights[key] = float(value)
     sort = SortSpec(
-        method=_choice(where, sort_raw.get("method", "plas"), SORT_METHODS, "sort.method"),
-        policy=_choice(where, sort_raw.get("policy", "pad"), SORT_POLICIES, "sort.policy"),
-        multiple=_int(where, sort_raw.get("multiple", 8), "sort.multiple", 1, 1024),
-        seed=_int(where, sort_raw.get("seed", 0), "sort.seed", 0, 2**32 - 1),
-        normalize=_choice(where, sort_raw.get("normalize", "minmax"), ("minmax", "std"), "sort.normalize"),
+        method=where.choice(sort_raw.get("method", "plas"), SORT_METHODS, "sort.method"),
+        policy=where.choice(sort_raw.get("policy", "pad"), SORT_POLICIES, "sort.policy"),
+        multiple=where.integer(sort_raw.get("multiple", 8), "sort.multiple", 1, 1024),
+        seed=where.integer(sort_raw.get("seed", 0), "sort.seed", 0, 2**32 - 1),
+        normalize=where.choice(sort_raw.get("normalize", "minmax"), ("minmax", "std"), "sort.normalize"),
         weights=weights,
-        schedule=_mapping(where, sort_raw, "schedule", "sort.schedule"),
+        schedule=where.mapping(sort_raw.get("schedule"), "sort.schedule"),
     )
     if sort.schedule and sort.method != "plas":
         raise where.error("sort.schedule", "schedule options apply to the plas method only")
 
-    prune = _mapping(where, raw, "prune")
-    where.unknown(prune, _PRUNE_KEYS, "prune")
+    prune = where.mapping(raw.get("prune"), "prune")
+    where.only(prune, _PRUNE_KEYS, "prune")
     min_opacity = prune.get("min_opacity", 0.0)
     if isinstance(min_opacity, bool) or not isinstance(min_opacity, (int, float)) or not 0 <= min_opacity < 1:
         raise where.error("prune.min_opacity", f"must be a number in [0, 1), got {min_opacity!r}")
@@ -356,7 +331,7 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
     )
 
 
-def _qp(where: _Where, value: Any, key: str, *, ladder: bool) -> int | tuple[int, ...] | None:
+def _qp(where: Where, value: Any, key: str, *, ladder: bool) -> int | tuple[int, ...] | None:
     if value is None:
         return None
     if ladder and isinstance(value, list):
@@ -370,53 +345,17 @@ def _qp(where: _Where, value: Any, key: str, *, ladder: bool) -> int | tuple[int
     return value
 
 
-def _bits(where: _Where, value: Any, key: str) -> int:
-    return _int(where, value, key, 1, 16)
-
-
-def _int(where: _Where, value: Any, key: str, lo: int, hi: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
-        raise where.error(key, f"must be an integer in {lo}-{hi}, got {value!r}")
-    return value
-
-
-def _choice(where: _Where, value: Any, choices: tuple[str, ...], key: str) -> str:
-    if value not in choices:
-        raise where.error(key, f"must be one of {', '.join(choices)}, got {value!r}")
-    return value
-
-
-def _string(where: _Where, raw: dict, name: str, default: str, key: str | None = None) -> str:
-    value = raw.get(name, default)
-    if not isinstance(value, str) or not value:
-        raise where.error(key or name, f"must be a non-empty string, got {value!r}")
-    return value
-
-
-def _mapping(where: _Where, raw: dict, name: str, key: str | None = None) -> dict:
-    value = raw.get(name) or {}
-    if not isinstance(value, dict):
-        raise where.error(key or name, f"must be a mapping, got {type(value).__name__}")
-    return dict(value)
-
-
-def _check_codec(where: _Where, name: str, qp: Any, key: str) -> None:
-    from gscodec_shac.codec.grid.base import CODECS, _load_builtin_codecs
-
-    _load_builtin_codecs()
+def _check_codec(where: Where, name: str, qp: Any, key: str) -> None:
     if name not in CODECS:
-        raise where.error(key, f"unknown codec {name!r} (known: {', '.join(sorted(CODECS))})")
-    if qp is not None and CODECS[name].lossless_only:
+        raise where.error(key, f"unknown codec {name!r} (known: {', '.join(CODECS.names())})")
+    if qp is not None and CODECS.get(name).lossless_only:
         raise where.error(key, f"codec {name!r} is lossless only but a QP is given")
 
 
-def _check_stage(stage: Any, where: _Where | None, key: str) -> None:
-    from gscodec_shac.shac.base import STAGES, _load_builtin_stages
-
-    _load_builtin_stages()
-    if stage not in STAGES:
-        problem = f"unknown SH stage {stage!r} (known: {', '.join(sorted(STAGES))})"
-        raise where.error(key, problem) if where else RatePointError(problem)
+def _stage_class(stage: Any, where: Where, key: str) -> type[ShStage]:
+    if not isinstance(stage, str) or stage not in STAGES:
+        raise where.error(key, f"unknown SH stage {stage!r} (known: {', '.join(STAGES.names())})")
+    return STAGES.get(stage)
 
 
 def _deep_merge(base: dict, over: dict) -> dict:

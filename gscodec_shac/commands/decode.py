@@ -19,7 +19,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from gscodec_shac.codec.pipeline import decode_file
+    from gscodec_shac.codec import decode_file
 
     summary = decode_file(args.input, args.output, progress=not args.quiet and sys.stderr.isatty())
     print(

@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     import json
 
     from gscodec_shac.errors import GscodecError
-    from gscodec_shac.codec.pipeline import encode_file
+    from gscodec_shac.codec import encode_file
     from gscodec_shac.codec.rate_points import load_rate_point
 
     point = load_rate_point(args.rate_point)

@@ -109,17 +109,18 @@ def _is_float(lo: float, hi: float) -> Callable[[Any], bool]:
 def codec_run(ctx: RunContext, stage: Any, sh_params: dict[str, Any], cloud: GaussianCloud | None = None,
               fit_stage: bool = True) -> Outcome:
     """Encode with our pipeline (sort cached), serialise, decode."""
-    from gscodec_shac.codec.pipeline import Decoder
-    from gscodec_shac.rd.sortcache import SortCachingEncoder
+    from gscodec_shac.codec import Decoder, Encoder
+    from gscodec_shac.rd.sortcache import cached_grid_order
 
     cloud = ctx.load_cloud() if cloud is None else cloud
-    point = ctx.rate_point
-    if ctx.preset:
-        point = point.with_overrides(codec_options={"preset": ctx.preset})
-    encoder = SortCachingEncoder(point, sh_stage=stage, sort=ctx.sort, sh_params=sh_params or None,
-                                 fit_stage=fit_stage, workers=ctx.threads, cache_dir=ctx.cache_dir)
+    encoder = Encoder(ctx.rate_point, sh_stage=stage, sort=ctx.sort, sh_params=sh_params or None,
+                      codec_options={"preset": ctx.preset} if ctx.preset else None,
+                      fit_stage=fit_stage, workers=ctx.threads)
+    grid, cached, sort_s = None, None, None
+    if ctx.cache_dir is not None:
+        grid, cached, sort_s = cached_grid_order(encoder, cloud, ctx.cache_dir)
     tic = time.perf_counter()
-    stream = encoder.encode(cloud)
+    stream = encoder.encode(cloud, grid=grid)
     data = stream.to_bytes()
     encode_s = time.perf_counter() - tic
     tic = time.perf_counter()
@@ -127,8 +128,8 @@ def codec_run(ctx: RunContext, stage: Any, sh_params: dict[str, Any], cloud: Gau
     decode_s = time.perf_counter() - tic
     extra = {
         "timings": {k: round(v, 4) for k, v in encoder.timings_.items()},
-        "sort_cached": encoder.sort_cached_,
-        "sort_s": encoder.sort_seconds_,
+        "sort_cached": cached,
+        "sort_s": sort_s if sort_s is not None else encoder.timings_.get("sort"),
         "sh_features": (stream.header.get("sh") or {}).get("features"),
     }
     return Outcome(decoded, len(data), dict(stream.attribute_sizes()), encode_s, decode_s, extra)

@@ -21,14 +21,18 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import struct
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
+from gscodec_shac import sh_index
 from gscodec_shac.errors import GscodecError, ValidationError
+from gscodec_shac.registry import Registry
+from gscodec_shac.validate import Where
 
 _STATE_MAGIC = b"SHST"
 _ALLOWED_DTYPES = {"<f2", "<f4", "<f8", "<i4", "<u2", "<u1", "|u1", "<i8", "|i1"}
@@ -92,11 +96,68 @@ class StageState:
         return cls(name=name, params=params, arrays=arrays)
 
 
+@dataclass(frozen=True)
+class StageParam:
+    """One constructor parameter of a stage, as rate points, the CLI and RD recipes see it.
+
+    ``kind`` is ``int``, ``float``, ``bool`` or ``choice``; numbers must lie in
+    ``[lo, hi]`` (``(lo, hi]`` with ``open_lo``). ``flag`` is the ``encode`` option
+    that sets it (``"er"`` -> ``--er``), if any; several stages may share a flag.
+    ``default`` is what the stage uses when the parameter is absent (shown in help).
+    """
+
+    name: str
+    kind: str
+    default: Any = None
+    help: str = ""
+    flag: str | None = None
+    lo: float | None = None
+    hi: float | None = None
+    open_lo: bool = False
+    choices: tuple[Any, ...] = ()
+
+    def check(self, value: Any, where: Where, key: str) -> Any:
+        """``value`` in its proper type, or the error of ``where`` naming ``key``."""
+        if self.kind == "int":
+            return where.integer(value, key, int(self.lo if self.lo is not None else -2**63),
+                                 None if self.hi is None else int(self.hi))
+        if self.kind == "float":
+            lo = -math.inf if self.lo is None else self.lo
+            hi = math.inf if self.hi is None else self.hi
+            return where.number(value, key, lo, hi, open_lo=self.open_lo)
+        if self.kind == "bool":
+            return where.boolean(value, key)
+        return where.choice(value, self.choices, key)
+
+
+#: What a stage's features are, which decides how the pipeline codes them.
+FEATURE_KINDS = {
+    "coefficients": "AC columns in (R, G, B) triplets: YCbCr may apply, each takes the QP of its SH degree",
+    "components": "channels in decreasing importance: the QP ladder follows the MPEG PCA rule",
+    "labels": "integers coded losslessly at the stage's feature_bits",
+}
+
+
 class ShStage(ABC):
-    """Base class of SH stages (see module docstring)."""
+    """Base class of SH stages (see module docstring).
+
+    Besides the transform, a stage declares what the pipeline needs to code it, so the
+    pipeline never tests a stage's name: ``feature_kind`` (a key of :data:`FEATURE_KINDS`),
+    ``rate_attribute`` (the rate-point attribute whose codec and QPs code the features),
+    ``uses_dc`` and :meth:`feature_degrees`; and its parameters (``params``), from which
+    rate-point validation, the ``encode`` options and the RD recipes are built.
+    """
 
     #: Registry name, e.g. ``"pca"``.
     name: ClassVar[str]
+    #: One line for ``--help`` and the docs.
+    summary: ClassVar[str] = ""
+    #: See :data:`FEATURE_KINDS`.
+    feature_kind: ClassVar[str] = "coefficients"
+    #: ``sh_ac`` (coded like AC coefficients), ``sh_features`` or ``sh_labels``.
+    rate_attribute: ClassVar[str] = "sh_features"
+    #: The constructor parameters users may set.
+    params: ClassVar[tuple[StageParam, ...]] = ()
     #: True when the stage consumes and returns ``[DC | A]`` instead of ``A``.
     uses_dc: bool = False
 
@@ -133,46 +194,57 @@ class ShStage(ABC):
         """Exact bytes of the stored side information (arrays of :meth:`state`)."""
         return self.state().nbytes()
 
+    # ------------------------------------------------------- what the codec needs
+    def feature_columns(self) -> np.ndarray | None:
+        """For ``coefficients`` stages: the AC column (paper order) each feature is; else None."""
+        return None
+
+    def feature_degrees(self, n_features: int) -> list[int]:
+        """SH degree whose QP each feature takes (the QP ladder of a rate point).
+
+        Coefficient features take their own column's degree; other features follow
+        the MPEG PCA rule: the first 9 take the degree-1 QP, the next 15 degree 2, then
+        degree 3 (the column counts 3(2l+1) of each degree, in order).
+        """
+        columns = self.feature_columns()
+        if columns is not None and len(columns) == n_features:
+            return [sh_index.degree_order(int(c) // 3 + 1)[0] for c in columns]
+        bounds = np.cumsum([3 * (2 * l + 1) for l in range(1, sh_index.MAX_SH_DEGREE + 2)])
+        return [int(np.searchsorted(bounds, i, side="right")) + 1 for i in range(n_features)]
+
+    def ycbcr_applies(self, n_features: int) -> bool:
+        """Whether a rate point's YCbCr colour transform applies to the features."""
+        return self.feature_kind == "coefficients" and not self.uses_dc and n_features % 3 == 0
+
+    # ------------------------------------------------------------ parameters
+    @classmethod
+    def check_params(cls, raw: Mapping[str, Any], where: Where, prefix: str = "") -> dict[str, Any]:
+        """Validated parameters (only those given, in their proper types)."""
+        known = {p.name: p for p in cls.params}
+        where.only(raw, known, prefix)
+        return {name: known[name].check(value, where, f"{prefix}.{name}" if prefix else name)
+                for name, value in raw.items()}
+
 
 # ------------------------------------------------------------------------ registry
-STAGES: dict[str, type[ShStage]] = {}
-
-
-def register_stage(cls: type[ShStage]) -> type[ShStage]:
-    """Class decorator adding a stage to :data:`STAGES` under ``cls.name``."""
-    STAGES[cls.name] = cls
-    return cls
+STAGES: Registry[ShStage] = Registry("SH stage", "gscodec_shac.shac", ("identity", "truncation", "pca", "lst", "vq"))
+register_stage = STAGES.register
 
 
 def make_stage(name: str, **params: Any) -> ShStage:
     """Instantiate a registered stage by name with its parameters."""
-    _load_builtin_stages()
-    if name not in STAGES:
-        raise ValidationError(f"unknown SH stage {name!r}; known: {', '.join(sorted(STAGES))}")
+    cls = STAGES.get(name)
     try:
-        return STAGES[name](**params)
+        return cls(**params)
     except TypeError as exc:
         raise ValidationError(f"bad parameters for SH stage {name!r}: {exc}") from None
 
 
 def stage_from_state(state: StageState) -> ShStage:
     """Rebuild a fitted stage from its state (looked up by ``state.name``)."""
-    _load_builtin_stages()
     if state.name not in STAGES:
-        raise GscodecError(f"unknown SH stage {state.name!r} in stored state; known: {', '.join(sorted(STAGES))}")
-    return STAGES[state.name].from_state(state)
-
-
-def _load_builtin_stages() -> None:
-    """Import the modules that register the built-in stages (kept lazy: torch etc.)."""
-    import importlib
-
-    for module in ("identity", "truncation", "pca", "lst", "vq"):
-        try:
-            importlib.import_module(f"gscodec_shac.shac.{module}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"gscodec_shac.shac.{module}":
-                raise
+        raise GscodecError(f"unknown SH stage {state.name!r} in stored state; known: {', '.join(STAGES.names())}")
+    return STAGES.get(state.name).from_state(state)
 
 
 def check_ac_matrix(ac: np.ndarray, expected_columns: int | None = None) -> np.ndarray:

@@ -12,9 +12,15 @@ class IdentityStage(ShStage):
     """Features are the AC matrix itself; no side information."""
 
     name = "none"
+    summary = "no SH stage: every AC coefficient is coded (the baseline)"
+    feature_kind = "coefficients"
+    rate_attribute = "sh_ac"
 
     def __init__(self) -> None:
         self.n_columns_: int | None = None
+
+    def feature_columns(self) -> np.ndarray | None:
+        return np.arange(self.n_features)
 
     def fit(self, ac: np.ndarray) -> "IdentityStage":
         self.n_columns_ = check_ac_matrix(ac).shape[1]

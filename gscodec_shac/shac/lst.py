@@ -54,7 +54,7 @@ import numpy as np
 
 from gscodec_shac import sh_index
 from gscodec_shac.errors import GscodecError, ValidationError
-from gscodec_shac.shac.base import ShStage, StageState, check_ac_matrix, register_stage
+from gscodec_shac.shac.base import ShStage, StageParam, StageState, check_ac_matrix, register_stage
 
 SUBSET_STRATEGIES = ("lowest", "highest")
 STRUCTURES = ("block", "dense")
@@ -235,6 +235,20 @@ class ShacLST(ShStage):
     """
 
     name = "lst"
+    summary = "SHAC-LST: a per-Gaussian SH subset S and a shared block-diagonal T (eq. 32-36), post-hoc fit"
+    feature_kind = "coefficients"
+    rate_attribute = "sh_features"
+    params = (
+        StageParam("degree", "int", None, "subset degree L (default: the scene's degree)", flag="degree",
+                   lo=1, hi=sh_index.MAX_SH_DEGREE),
+        StageParam("subset", "choice", "lowest", "which coefficients form S", choices=SUBSET_STRATEGIES),
+        StageParam("structure", "choice", "block", "structure of T (eq. 33-34)", choices=STRUCTURES),
+        StageParam("ridge", "float", DEFAULT_RIDGE, "strength of the post-hoc scale penalty", lo=0.0),
+        StageParam("refit_subset", "int", 0, "alternating refits of S after T", lo=0, hi=1000),
+    )
+
+    def feature_columns(self) -> np.ndarray | None:
+        return None if self.layout_ is None else np.asarray(self.layout_.subset_columns)
 
     def __init__(
         self,

@@ -47,9 +47,12 @@ from gscodec_shac.shac.analysis import (
     rank_for_energy,
     safe_scale,
 )
-from gscodec_shac.shac.base import ShStage, StageState, check_ac_matrix, register_stage
+from gscodec_shac.shac.base import ShStage, StageParam, StageState, check_ac_matrix, register_stage
+from gscodec_shac.validate import Where
 
 SIDE_DTYPES = {"float16": np.float16, "float32": np.float32, "float64": np.float64}
+#: The energy retention used when neither it nor ``n_components`` is given (the paper's ER 99%).
+DEFAULT_ENERGY_RETENTION = 0.99
 #: Bytes of one float32 (the unit of eq. 30's parameter counts in bytes).
 FLOAT32_BYTES = 4
 
@@ -77,6 +80,27 @@ class ShacPCA(ShStage):
     """
 
     name = "pca"
+    summary = "SHAC-PCA: principal components of the standardised AC matrix (eq. 23-31)"
+    feature_kind = "components"
+    rate_attribute = "sh_features"
+    params = (
+        StageParam("energy_retention", "float", DEFAULT_ENERGY_RETENTION,
+                   "energy retention ER(M) (eq. 26) the kept components reach", flag="er", lo=0.0, hi=1.0, open_lo=True),
+        StageParam("n_components", "int", None, "number of components M (instead of an ER)", flag="components",
+                   lo=1, hi=128),
+        StageParam("include_dc", "bool", False, "PCA over [DC | AC] (ablation, Sec. VII-D1)"),
+        StageParam("standardize", "bool", True, "z-score the columns first (eq. 23)"),
+        StageParam("joint_rgb", "bool", True, "one PCA over R, G and B together"),
+        StageParam("side_dtype", "choice", "float32", "precision of P, mu, sigma", choices=tuple(SIDE_DTYPES)),
+        StageParam("chunk_size", "int", DEFAULT_CHUNK, "rows per accumulation chunk", lo=1),
+    )
+
+    @classmethod
+    def check_params(cls, raw: Any, where: Where, prefix: str = "") -> dict[str, Any]:
+        params = super().check_params(raw, where, prefix)
+        if "energy_retention" in params and "n_components" in params:
+            raise where.error(prefix, "give energy_retention or n_components, not both")
+        return params
 
     def __init__(
         self,
@@ -94,7 +118,7 @@ class ShacPCA(ShStage):
         if n_components is not None and not _is_positive_int(n_components):
             raise ValidationError(f"n_components must be a positive integer, got {n_components!r}")
         if n_components is None and energy_retention is None:
-            energy_retention = 0.99
+            energy_retention = DEFAULT_ENERGY_RETENTION
         if energy_retention is not None:
             energy_retention = check_energy_target(energy_retention)
         if side_dtype not in SIDE_DTYPES:

@@ -11,7 +11,7 @@ import numpy as np
 
 from gscodec_shac import sh_index
 from gscodec_shac.errors import GscodecError, ValidationError
-from gscodec_shac.shac.base import ShStage, StageState, check_ac_matrix, register_stage
+from gscodec_shac.shac.base import ShStage, StageParam, StageState, check_ac_matrix, register_stage
 
 FLOAT32_BYTES = 4
 
@@ -21,6 +21,10 @@ class TruncationStage(ShStage):
     """SH stage "trunc": keep degrees <= ``degree``; no side information."""
 
     name = "trunc"
+    summary = "truncation to a lower SH degree (higher degrees dropped)"
+    feature_kind = "coefficients"
+    rate_attribute = "sh_ac"
+    params = (StageParam("degree", "int", 2, "SH degree L' kept", flag="degree", lo=0, hi=3),)
 
     def __init__(self, degree: int = 2) -> None:
         if isinstance(degree, bool) or int(degree) != degree or not 0 <= degree <= sh_index.MAX_SH_DEGREE:
@@ -55,6 +59,9 @@ class TruncationStage(ShStage):
         out = np.zeros((features.shape[0], self.n_columns_), dtype=features.dtype)
         out[:, : self.n_features] = features
         return out
+
+    def feature_columns(self) -> np.ndarray | None:
+        return np.arange(self.n_features)
 
     @property
     def n_features(self) -> int:

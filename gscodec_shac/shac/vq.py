@@ -6,10 +6,10 @@ index of its nearest codebook entry; the codebook (``n_clusters`` entries,
 a per-dimension min/max.
 
 **Features are integer labels.** :meth:`VectorQuantizer.transform` returns the
-labels as one float column (exact: labels < 2**24), and the class sets
-``lossless_features = True`` and :attr:`feature_bits`: a pipeline must code that
+labels as one float column (exact: labels < 2**24), and the class declares
+``feature_kind = "labels"`` and :attr:`feature_bits`: a pipeline must code that
 column losslessly as ``feature_bits``-bit integers, not through the min/max
-quantiser (:mod:`gscodec_shac.codec.pipeline` does). Keeping the float column keeps
+quantiser (:mod:`gscodec_shac.codec.encoder` does). Keeping the float column keeps
 the :class:`~gscodec_shac.shac.base.ShStage` contract unchanged for every caller.
 
 **Fitting on a CPU.** A flat k-means with 65,536 centres costs N x K x K'
@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gscodec_shac.errors import GscodecError, ValidationError
-from gscodec_shac.shac.base import ShStage, StageState, check_ac_matrix, register_stage
+from gscodec_shac.shac.base import ShStage, StageParam, StageState, check_ac_matrix, register_stage
 
 INITS = ("random", "kmeans++")
 #: Rows per block when computing distances (bounds temporary memory).
@@ -72,7 +72,18 @@ class VectorQuantizer(ShStage):
     """
 
     name = "vq"
-    lossless_features = True
+    summary = "vector quantisation: a k-means codebook of SH vectors and one label per Gaussian (gsplat style)"
+    feature_kind = "labels"
+    rate_attribute = "sh_labels"
+    params = (
+        StageParam("n_clusters", "int", 65536, "codebook size", flag="clusters", lo=1, hi=1 << 24),
+        StageParam("centroid_bits", "int", 6, "bits per codebook component", flag="centroid_bits", lo=1, hi=16),
+        StageParam("n_iter", "int", 10, "k-means iterations", lo=1, hi=1000),
+        StageParam("init", "choice", "random", "k-means initialisation", choices=INITS),
+        StageParam("seed", "int", 0, "k-means seed (encode's --seed sets it too)", lo=0, hi=2**32 - 1),
+        StageParam("leaf_work", "int", 1 << 22, "work budget of one k-means leaf", lo=1),
+        StageParam("sample_per_branch", "int", 64, "samples per branch of the hierarchical k-means", lo=1),
+    )
 
     def __init__(
         self,

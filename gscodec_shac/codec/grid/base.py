@@ -17,6 +17,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from gscodec_shac.errors import BitstreamError, CodecUnavailableError, ValidationError
+from gscodec_shac.registry import Registry
 
 
 class GridCodec(ABC):
@@ -109,21 +110,13 @@ def split_chunks(data: bytes, count: int, name: str) -> list[bytes]:
     return chunks
 
 
-CODECS: dict[str, type[GridCodec]] = {}
-
-
-def register_codec(cls: type[GridCodec]) -> type[GridCodec]:
-    """Class decorator adding a codec to :data:`CODECS` under ``cls.name``."""
-    CODECS[cls.name] = cls
-    return cls
+CODECS: Registry[GridCodec] = Registry("grid codec", "gscodec_shac.codec.grid", ("raw", "png", "jpegls", "hevc", "hm"))
+register_codec = CODECS.register
 
 
 def get_codec(name: str, **options: Any) -> GridCodec:
     """A codec instance by registry name; raises if unknown or unavailable here."""
-    _load_builtin_codecs()
-    if name not in CODECS:
-        raise ValidationError(f"unknown grid codec {name!r}; known: {', '.join(sorted(CODECS))}")
-    cls = CODECS[name]
+    cls = CODECS.get(name)
     cls.check_available()
     try:
         return cls(**options)
@@ -133,23 +126,11 @@ def get_codec(name: str, **options: Any) -> GridCodec:
 
 def available_codecs() -> list[str]:
     """Names of the codecs usable on this machine."""
-    _load_builtin_codecs()
     usable = []
-    for name, cls in sorted(CODECS.items()):
+    for name, cls in CODECS.items():
         try:
             cls.check_available()
         except CodecUnavailableError:
             continue
         usable.append(name)
     return usable
-
-
-def _load_builtin_codecs() -> None:
-    import importlib
-
-    for module in ("raw", "png", "jpegls", "hevc", "hm"):
-        try:
-            importlib.import_module(f"gscodec_shac.codec.grid.{module}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"gscodec_shac.codec.grid.{module}":
-                raise

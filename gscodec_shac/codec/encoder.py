@@ -1,0 +1,265 @@
+"""The encoder: a :class:`GaussianCloud` -> a ``.gsc`` :class:`Bitstream`.
+
+One call of :meth:`Encoder.encode` runs, in order::
+
+    prune -> sort onto an (H, W) grid (layout.py) -> SH stage (shac/) -> per-attribute
+    transform (attributes.py) -> per-channel quantiser (quantize.py) -> (C, H, W) planes
+    -> grid codec (grid/) in threads -> chunks + header (container.py)
+
+A chunk is a run of an attribute's channels that share a QP (and, for 9-16 bit lossless
+data in the ``split8`` layout, one of its two 8-bit halves). The SH stage says how its
+features are coded (``feature_kind``, ``rate_attribute``, ``feature_degrees``): the
+encoder never tests a stage's name. The decoded cloud is in grid order.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+import zlib
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Mapping
+
+import numpy as np
+from tqdm.auto import tqdm
+
+import gscodec_shac
+from gscodec_shac.codec import quantize as qz
+from gscodec_shac.codec.attributes import ATTRIBUTES, SH_FEATURES_TRANSFORM
+from gscodec_shac.codec.container import Bitstream
+from gscodec_shac.codec.grid.base import GridCodec, get_codec
+from gscodec_shac.codec.layout import GridOrder, check_grid, kept_rows, plan_grid, planes, qp_runs
+from gscodec_shac.codec.rate_points import AttributeSpec, RatePoint, load_rate_point
+from gscodec_shac.errors import ValidationError
+from gscodec_shac.gaussians import GaussianCloud
+from gscodec_shac.shac.base import ShStage, make_stage
+
+
+def default_workers() -> int:
+    """Grid-codec calls run in this many threads (x265, PNG and FFmpeg release the GIL)."""
+    return max(1, min(8, os.cpu_count() or 1))
+
+
+@dataclass
+class _Job:
+    """One chunk to code: its planes, codec and the chunk-table entry it will get."""
+
+    name: str
+    codec: GridCodec
+    planes: np.ndarray
+    bits: int
+    qp: int | None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+class Encoder:
+    """Encode clouds with one rate point and the caller's overrides of it.
+
+    ``sh_stage``: a stage name (fitted on each cloud) or a :class:`ShStage` instance;
+    with ``fit_stage=False`` an instance is used as already fitted (e.g. SHAC-LST's
+    trained T). ``sh_params`` go to the stage; ``sort`` and ``seed`` override the rate
+    point's sorting; ``codec_options`` are merged into every lossy attribute's codec
+    options (e.g. ``{"preset": "veryfast"}``). All overrides are applied here, once,
+    and the resolved rate point is :attr:`rate_point` (recorded in the header).
+    ``workers`` threads code the chunks (the bytes do not depend on it). After
+    :meth:`encode`, ``order_`` holds the input row of each decoded Gaussian and
+    ``timings_`` the seconds per step.
+    """
+
+    def __init__(
+        self,
+        rate_point: str | Path | RatePoint,
+        sh_stage: str | ShStage | None = None,
+        sort: str | None = None,
+        *,
+        sh_params: Mapping[str, Any] | None = None,
+        seed: int | None = None,
+        codec_options: Mapping[str, Any] | None = None,
+        fit_stage: bool = True,
+        progress: bool = False,
+        workers: int | None = None,
+    ) -> None:
+        self._stage_instance = sh_stage if isinstance(sh_stage, ShStage) else None
+        name = self._stage_instance.name if self._stage_instance is not None else sh_stage
+        self.rate_point = load_rate_point(rate_point).with_overrides(
+            sh_stage=name, sh_params=sh_params, sort_method=sort, seed=seed, codec_options=codec_options
+        )
+        self.fit_stage = fit_stage
+        self.progress = progress
+        self.workers = workers or default_workers()
+        self.order_: np.ndarray | None = None
+        self.timings_: dict[str, float] = {}
+        self._codecs: dict[tuple, tuple[GridCodec, int]] = {}
+        self._jobs: list[_Job] = []
+
+    # ---------------------------------------------------------------- main
+    def grid_order(self, cloud: GaussianCloud) -> GridOrder:
+        """The grid placement :meth:`encode` computes for ``cloud`` (after pruning), to reuse it."""
+        kept = kept_rows(cloud, self.rate_point.min_opacity)
+        work = cloud if kept.size == cloud.num_gaussians else cloud.select(kept)
+        return plan_grid(work, self.rate_point.sort, self.progress)
+
+    def encode(self, cloud: GaussianCloud, grid: GridOrder | None = None) -> Bitstream:
+        """Compress ``cloud`` into a :class:`Bitstream` (deterministic for equal input).
+
+        ``grid``: a placement from :meth:`grid_order` for the same cloud and settings,
+        to sort once for many encodes (the bytes are the same).
+        """
+        rp = self.rate_point
+        self._codecs, self._jobs, self.timings_ = {}, [], {}
+        with self._timed("prune"):
+            kept = kept_rows(cloud, rp.min_opacity)
+            work = cloud if kept.size == cloud.num_gaussians else cloud.select(kept)
+        with self._timed("sort"):
+            grid = plan_grid(work, rp.sort, self.progress) if grid is None else check_grid(grid, work)
+            rows = grid.rows
+            grid_cloud = work.select(rows)
+            self.order_ = kept[rows]
+        with self._timed("sh_stage"):
+            stage, features = self._sh_features(grid_cloud)
+
+        stream = Bitstream()
+        n = grid_cloud.num_gaussians
+        padding = grid.padding
+        if padding == "mask":  # empty cells inside the grid: store which cells are occupied
+            packed, raw_size = grid.mask_chunk()
+            stream.add_chunk("grid_mask", packed, attribute="grid", encoding="zlib", raw_size=raw_size)
+        cell_rows = grid.cell_rows()
+        ycbcr = rp.color == "ycbcr"
+        attributes: dict[str, Any] = {}
+        with self._timed("quantize"):
+            for name, attr in ATTRIBUTES.items():
+                if name == "sh_dc" and stage is not None and stage.uses_dc:
+                    continue  # the DC travels inside the stage's features
+                values = attr.forward(grid_cloud, ycbcr)
+                attributes[name] = self._code_values(name, attr.transform, values, rp.attributes[name], cell_rows,
+                                                     grid.shape, attr.groups)
+            if features is not None and features.shape[1]:
+                attributes["sh"] = self._code_sh(stage, features, cell_rows, grid.shape)
+        with self._timed("code"):
+            self._run_jobs(stream)
+
+        sh_header = None
+        if stage is not None:
+            raw = stage.state().to_bytes()
+            stream.add_chunk("sh_state", zlib.compress(raw, 9), attribute="sh_state", encoding="zlib", raw_size=len(raw))
+            sh_header = {
+                "stage": stage.name,
+                "features": int(features.shape[1]),
+                "lossless": stage.feature_kind == "labels",
+                "uses_dc": bool(stage.uses_dc),
+                "ycbcr": bool(ycbcr and stage.ycbcr_applies(features.shape[1])),
+            }
+        stream.header = {
+            "producer": f"gscodec-shac {gscodec_shac.__version__}",
+            "num_gaussians": n,
+            "input_gaussians": cloud.num_gaussians,
+            "sh_degree": cloud.sh_degree,
+            "grid": {"height": grid.shape[0], "width": grid.shape[1], "padding": padding, "policy": grid.policy,
+                     "dropped": grid.dropped, "sort": rp.sort.to_json()},
+            "prune": {"min_opacity": rp.min_opacity, "pruned": int(cloud.num_gaussians - kept.size)},
+            "color": rp.color,
+            "sh": sh_header,
+            "attributes": attributes,
+            "codecs": [codec.describe() for codec, _ in sorted(self._codecs.values(), key=lambda item: item[1])],
+            "rate_point": rp.to_json(),
+        }
+        return stream
+
+    @contextmanager
+    def _timed(self, step: str) -> Iterator[None]:
+        tic = time.perf_counter()
+        yield
+        self.timings_[step] = time.perf_counter() - tic
+
+    # -------------------------------------------------------------- steps
+    def _sh_features(self, cloud: GaussianCloud) -> tuple[ShStage | None, np.ndarray | None]:
+        if cloud.sh_degree == 0:
+            return None, None
+        stage = self._stage_instance or make_stage(self.rate_point.sh_stage, **self.rate_point.sh_params)
+        ac = cloud.ac_matrix()
+        if stage.uses_dc:
+            ac = np.concatenate([cloud.sh_dc, ac], axis=1)
+        features = stage.fit_transform(ac) if (self.fit_stage or self._stage_instance is None) else stage.transform(ac)
+        return stage, np.asarray(features)
+
+    def _code_sh(self, stage: ShStage, features: np.ndarray, cell_rows: np.ndarray, shape: tuple[int, int]) -> dict:
+        spec = self.rate_point.attributes[stage.rate_attribute]
+        if stage.feature_kind == "labels":
+            bits = int(stage.feature_bits)  # type: ignore[attr-defined]
+            labels = np.rint(features).astype(np.int64)
+            if labels.size and (labels.min() < 0 or labels.max() >= 1 << bits):
+                raise ValidationError(f"SH stage {stage.name!r} gave labels outside 0..2^{bits}-1")
+            return self._code_integers("sh", SH_FEATURES_TRANSFORM, labels.astype(np.uint16), bits, spec, cell_rows, shape)
+        values = features
+        if self.rate_point.color == "ycbcr" and stage.ycbcr_applies(features.shape[1]):
+            values = qz.triplets_to_ycbcr(features)
+        qps = [spec.qp_for_degree(d) for d in stage.feature_degrees(features.shape[1])]
+        return self._code_values("sh", SH_FEATURES_TRANSFORM, values, spec, cell_rows, shape, None, qps)
+
+    def _code_values(
+        self, name: str, transform: str, values: np.ndarray, spec: AttributeSpec,
+        cell_rows: np.ndarray, shape: tuple[int, int], groups: tuple | None, qps: list | None = None,
+    ) -> dict:
+        """Quantise (N, C) floats and queue their chunks; returns the attribute's header entry."""
+        quantizer = qz.Quantizer.fit(values, spec.bits)
+        q = quantizer.quantize(values)
+        if spec.lossless:
+            entry = self._code_integers(name, transform, q, spec.bits, spec, cell_rows, shape)
+        else:
+            channels = q.shape[1]
+            qps = qps or [spec.qp_for_degree(1)] * channels
+            runs = groups or qp_runs(qps)
+            entry = {"chunks": []}
+            for index, (start, stop) in enumerate(runs):
+                chunk = f"{name}_{index}" if len(runs) > 1 else name
+                self._queue(chunk, name, planes(q[:, start:stop], cell_rows, shape), spec.bits, qps[start], spec,
+                            (start, stop), "all")
+                entry["chunks"].append(chunk)
+        entry.update(transform=transform, channels=int(values.shape[1]), quantizer=quantizer.to_json())
+        return entry
+
+    def _code_integers(
+        self, name: str, transform: str, q: np.ndarray, bits: int, spec: AttributeSpec,
+        cell_rows: np.ndarray, shape: tuple[int, int],
+    ) -> dict:
+        """Code (N, C) integers of ``bits`` bits losslessly (split into two 8-bit halves or not)."""
+        channels = (0, q.shape[1])
+        if spec.layout == "split8" and bits > 8:
+            high, low = qz.split_planes(q, bits)
+            self._queue(f"{name}_hi", name, planes(high, cell_rows, shape), bits - 8, None, spec, channels, "hi")
+            self._queue(f"{name}_lo", name, planes(low, cell_rows, shape), 8, None, spec, channels, "lo")
+            chunks = [f"{name}_hi", f"{name}_lo"]
+        else:
+            self._queue(name, name, planes(q, cell_rows, shape), bits, None, spec, channels, "all")
+            chunks = [name]
+        return {"chunks": chunks, "channels": int(q.shape[1]), "integer_bits": bits, "transform": transform}
+
+    def _queue(
+        self, chunk: str, attribute: str, planes: np.ndarray, bits: int,
+        qp: int | None, spec: AttributeSpec, channels: tuple[int, int], part: str,
+    ) -> None:
+        codec, index = self._codec(spec.codec, spec.options)
+        meta = {"attribute": attribute, "channels": list(channels), "part": part,
+                "shape": list(planes.shape), "bits": bits, "qp": qp, "codec": index}
+        self._jobs.append(_Job(chunk, codec, planes, bits, qp, meta))
+
+    def _run_jobs(self, stream: Bitstream) -> None:
+        """Code the queued chunks in threads; chunks enter the stream in queue order."""
+        with ThreadPoolExecutor(self.workers) as pool:
+            futures = [pool.submit(job.codec.encode, job.planes, job.bits, job.qp) for job in self._jobs]
+            for job, future in tqdm(list(zip(self._jobs, futures)), desc="encode", unit="chunk",
+                                    disable=not self.progress, leave=False):
+                stream.add_chunk(job.name, future.result(), **job.meta)
+        self._jobs = []
+
+    def _codec(self, name: str, options: dict) -> tuple[GridCodec, int]:
+        """A codec instance and its index in the header's codec table."""
+        key = (name, json.dumps(options, sort_keys=True))
+        if key not in self._codecs:
+            self._codecs[key] = (get_codec(name, **options), len(self._codecs))
+        return self._codecs[key]

@@ -1,0 +1,152 @@
+"""Grid layout: where each Gaussian sits on the 2-D grid, and values <-> planes.
+
+Encode: prune (rate point ``prune.min_opacity``) -> :func:`plan_grid` sorts the kept
+Gaussians onto an (H, W) grid (:mod:`sorting`; PLAS, Morton, random or none) ->
+:class:`GridOrder` (``order``: for each cell its row of the pruned cloud, or -1 when
+empty) -> :func:`planes` turns (N, C) values in grid order into (C, H, W) planes, empty
+cells repeating the previous value (smooth for the grid codecs). When empty cells lie
+inside the grid, the container stores which cells are occupied (``grid_mask``).
+
+Sorting is the slowest step of an encode and depends only on the cloud and the
+rate point's sort and prune settings: :meth:`gscodec_shac.codec.Encoder.grid_order`
+computes a :class:`GridOrder` once and ``Encoder.encode(cloud, grid=...)`` reuses it
+(the bytes are the same).
+"""
+
+from __future__ import annotations
+
+import zlib
+from typing import NamedTuple
+
+import numpy as np
+
+from gscodec_shac.codec import quantize as qz
+from gscodec_shac.codec.rate_points import SortSpec
+from gscodec_shac.errors import BitstreamError, ValidationError
+from gscodec_shac.gaussians import GaussianCloud
+
+
+class GridOrder(NamedTuple):
+    """Where the (pruned) Gaussians go: grid ``shape`` (H, W), ``order`` (H*W cells ->
+    row or -1), how many were ``dropped`` to fill the grid, and the ``policy`` used."""
+
+    shape: tuple[int, int]
+    order: np.ndarray
+    dropped: int
+    policy: str
+
+    @property
+    def rows(self) -> np.ndarray:
+        """Rows of the pruned cloud in grid order (the occupied cells, row by row)."""
+        return self.order[self.order >= 0]
+
+    @property
+    def padding(self) -> str:
+        """``tail`` when the occupied cells are the first N, else ``mask`` (stored in the file)."""
+        n = int(np.count_nonzero(self.order >= 0))
+        return "tail" if bool(np.all(self.order[:n] >= 0)) else "mask"
+
+    def cell_rows(self) -> np.ndarray:
+        """For each cell, the grid-order row it shows: its own, or the previous row for an empty cell."""
+        return np.maximum(np.cumsum(self.order >= 0) - 1, 0)
+
+    def mask_chunk(self) -> tuple[bytes, int]:
+        """The occupancy bits, packed and deflated, and their count (for ``padding == "mask"``)."""
+        mask = np.packbits(self.order >= 0)
+        return zlib.compress(mask.tobytes(), 9), int(mask.size)
+
+
+def kept_rows(cloud: GaussianCloud, min_opacity: float) -> np.ndarray:
+    """Rows surviving opacity pruning (all rows when ``min_opacity`` is 0)."""
+    if min_opacity <= 0:
+        return np.arange(cloud.num_gaussians)
+    kept = np.flatnonzero(qz.prune_mask(cloud, min_opacity))
+    if kept.size == 0:
+        raise ValidationError(f"pruning at opacity {min_opacity} removes every Gaussian")
+    return kept
+
+
+def plan_grid(cloud: GaussianCloud, spec: SortSpec, progress: bool = False) -> GridOrder:
+    """Sort ``cloud`` onto a grid as ``spec`` says.
+
+    The drop policy falls back to padding when the cloud fills less than one
+    ``multiple`` x ``multiple`` block.
+    """
+    import sorting
+
+    n = cloud.num_gaussians
+    try:
+        policy = spec.policy if not (spec.policy == "drop" and n < spec.multiple**2) else "pad"
+        shape = sorting.grid_shape(n, multiple=spec.multiple, policy=policy)
+        keep = np.arange(n)
+        if policy == "drop" and shape[0] * shape[1] < n:
+            keep = sorting.select_for_grid(importance(cloud), shape[0] * shape[1])
+        attributes = {
+            "xyz": cloud.means, "scale": cloud.scales, "opacity": cloud.opacities,
+            "dc": cloud.sh_dc, "rotation": qz.canonical_quaternions(cloud.quats),
+        }
+        attributes = {k: v[keep] for k, v in attributes.items() if spec.weights.get(k, 0) > 0}
+        if spec.method == "none":
+            local = sorting.sort_to_grid(np.zeros((keep.size, 1), np.float32), shape, method="none")
+        else:
+            weights = {k: spec.weights[k] for k in attributes}
+            features = sorting.prepare_features(attributes, weights, spec.normalize)
+            schedule = spec.schedule if spec.method == "plas" else {}
+            local = sorting.sort_to_grid(features, shape, method=spec.method, seed=spec.seed, progress=progress,
+                                         **schedule)
+    except sorting.SortingError as exc:
+        raise ValidationError(f"sorting: {exc}") from None
+    order = np.where(local >= 0, keep[np.maximum(local, 0)], -1)
+    return GridOrder(shape, order, int(n - keep.size), policy)
+
+
+def check_grid(grid: GridOrder, cloud: GaussianCloud) -> GridOrder:
+    """A caller's placement, checked against the (pruned) cloud it is used for."""
+    from sorting.errors import SortingError
+    from sorting.grid import check_order
+
+    shape, order, dropped, policy = grid
+    order = np.asarray(order)
+    if len(shape) != 2 or int(shape[0]) * int(shape[1]) != order.size:
+        raise ValidationError(f"grid order has {order.size} cells, shape {tuple(shape)} has a different count")
+    try:
+        order = check_order(order.reshape(-1), cloud.num_gaussians)
+    except SortingError as exc:
+        raise ValidationError(f"grid order does not fit this cloud: {exc}") from None
+    return GridOrder((int(shape[0]), int(shape[1])), order, int(dropped), str(policy))
+
+
+def importance(cloud: GaussianCloud) -> np.ndarray:
+    """What the drop policy keeps: opacity times footprint area (exp of twice the mean log-scale)."""
+    return cloud.activated_opacities() * np.exp(2.0 * cloud.scales.astype(np.float64).mean(axis=1))
+
+
+def planes(values: np.ndarray, cell_rows: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(N, C) grid-order values -> (C, H, W) planes; empty cells repeat the previous value."""
+    return np.ascontiguousarray(values[cell_rows].T.reshape(values.shape[1], *shape))
+
+
+def occupied(flat: np.ndarray, n: int, mask: np.ndarray | None) -> np.ndarray:
+    """(C, H*W) decoded planes -> (N, C) values of the occupied cells (the first ``n`` without a mask)."""
+    return (flat[:, :n] if mask is None else flat[:, mask]).T
+
+
+def unpack_mask(bits: bytes, n: int, cells: int) -> np.ndarray:
+    """Inverse of :meth:`GridOrder.mask_chunk` (already inflated); checked against ``n`` Gaussians."""
+    packed = np.frombuffer(bits, dtype=np.uint8)
+    if packed.size != (cells + 7) // 8:
+        raise BitstreamError("corrupt .gsc file: grid mask has the wrong size")
+    mask = np.unpackbits(packed, count=cells).astype(bool)
+    if int(mask.sum()) != n:
+        raise BitstreamError("corrupt .gsc file: grid mask does not match the Gaussian count")
+    return mask
+
+
+def qp_runs(qps: list) -> list[tuple[int, int]]:
+    """Maximal runs of equal QP: [(start, stop), ...] (each run is one chunk)."""
+    runs, start = [], 0
+    for i in range(1, len(qps) + 1):
+        if i == len(qps) or qps[i] != qps[start]:
+            runs.append((start, i))
+            start = i
+    return runs

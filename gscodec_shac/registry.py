@@ -1,0 +1,67 @@
+"""One registry idiom for everything found by name (SH stages, grid codecs, RD recipes).
+
+A :class:`Registry` maps names to classes. Classes join with the :meth:`Registry.register`
+decorator (their ``name`` class attribute is the key); the built-in ones are imported on
+first use, so looking one up stays cheap and a module that needs torch is only imported
+when asked for. Adding one is a new module in the folder plus its name in the
+registry's ``builtin`` list.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Generic, Iterator, Sequence, TypeVar
+
+from gscodec_shac.errors import GscodecError, ValidationError
+
+T = TypeVar("T")
+
+
+class Registry(Generic[T]):
+    """Classes of one ``kind`` by name; ``builtin`` modules (under ``package``) register on first use."""
+
+    def __init__(self, kind: str, package: str, builtin: Sequence[str], error: type[GscodecError] = ValidationError) -> None:
+        self.kind = kind
+        self.package = package
+        self.builtin = tuple(builtin)
+        self.error = error
+        self._classes: dict[str, type[T]] = {}
+        self._loaded = False
+
+    def register(self, cls: type[T]) -> type[T]:
+        """Class decorator: add ``cls`` under ``cls.name``."""
+        name = getattr(cls, "name")
+        if name in self._classes and self._classes[name] is not cls:
+            raise ValueError(f"{self.kind} {name!r} is registered twice")
+        self._classes[name] = cls
+        return cls
+
+    def get(self, name: str) -> type[T]:
+        """The class called ``name``; an error naming the known ones otherwise."""
+        self._load()
+        if not isinstance(name, str) or name not in self._classes:
+            raise self.error(f"unknown {self.kind} {name!r}; known: {', '.join(self.names())}")
+        return self._classes[name]
+
+    def names(self) -> list[str]:
+        """Every registered name, sorted."""
+        self._load()
+        return sorted(self._classes)
+
+    def __contains__(self, name: object) -> bool:
+        self._load()
+        return name in self._classes
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.names())
+
+    def items(self) -> list[tuple[str, type[T]]]:
+        self._load()
+        return sorted(self._classes.items())
+
+    def _load(self) -> None:
+        if self._loaded:
+            return
+        for module in self.builtin:
+            importlib.import_module(f"{self.package}.{module}")
+        self._loaded = True
