@@ -1,7 +1,8 @@
 """One registry idiom for everything found by name (SH stages, grid codecs, RD recipes).
 
-A :class:`Registry` maps names to classes. Classes join with the :meth:`Registry.register`
-decorator (their ``name`` class attribute is the key); the built-in ones are imported on
+A :class:`Registry` maps names to classes (or, for stateless helpers such as RD
+recipes, instances). They join with :meth:`Registry.register`, a decorator (their
+``name`` attribute is the key); the built-in ones are imported on
 first use, so looking one up stays cheap and a module that needs torch is only imported
 when asked for. Adding one is a new module in the folder plus its name in the
 registry's ``builtin`` list.

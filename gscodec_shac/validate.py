@@ -96,7 +96,8 @@ class Where:
     def sequence(self, value: Any, key: str, *, min_length: int = 1) -> list:
         """A list with at least ``min_length`` items."""
         if not isinstance(value, list) or len(value) < min_length:
-            raise self.error(key, f"must be a list of at least {min_length} item(s), got {value!r}")
+            wanted = "a non-empty list" if min_length == 1 else f"a list of at least {min_length} items"
+            raise self.error(key, f"must be {wanted}, got {value!r}")
         return value
 
     def vector3(self, value: Any, key: str, lo: float = -math.inf, hi: float = math.inf) -> tuple[float, float, float]:

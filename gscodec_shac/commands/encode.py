@@ -5,14 +5,19 @@ from __future__ import annotations
 import argparse
 import sys
 
-#: CLI option -> (SH stage parameter, stages it applies to).
-STAGE_OPTIONS = {
-    "er": ("energy_retention", ("pca",)),
-    "components": ("n_components", ("pca",)),
-    "degree": ("degree", ("trunc",)),
-    "clusters": ("n_clusters", ("vq",)),
-    "centroid_bits": ("centroid_bits", ("vq",)),
-}
+from gscodec_shac.shac.base import STAGES, StageParam
+
+_TYPES = {"int": int, "float": float}
+
+
+def stage_options() -> dict[str, list[tuple[str, StageParam]]]:
+    """CLI flag -> the (stage, parameter) pairs it sets, from the stages' declarations."""
+    options: dict[str, list[tuple[str, StageParam]]] = {}
+    for name, cls in STAGES.items():
+        for param in cls.params:
+            if param.flag:
+                options.setdefault(param.flag, []).append((name, param))
+    return options
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -26,13 +31,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("output", help="output .gsc (written atomically)")
     parser.add_argument("--rate-point", "-r", default="paper_table3:rp2",
                         help="FILE:POINT, e.g. paper_table3:rp2, mpeg_ctc_video:rp01, gsplat_png (default: %(default)s)")
-    parser.add_argument("--sh", choices=("none", "trunc", "pca", "lst", "vq"),
-                        help="SH stage (default: the rate point's)")
-    parser.add_argument("--er", type=float, help="pca: energy retention, e.g. 0.99")
-    parser.add_argument("--components", type=int, help="pca: number of components M")
-    parser.add_argument("--degree", type=int, help="trunc: SH degree L' kept")
-    parser.add_argument("--clusters", type=int, help="vq: codebook size (default 65536)")
-    parser.add_argument("--centroid-bits", type=int, help="vq: bits per codebook component (default 6)")
+    parser.add_argument("--sh", choices=STAGES.names(),
+                        help="SH stage (default: the rate point's): "
+                        + "; ".join(f"{name}: {cls.summary}" for name, cls in STAGES.items()))
+    for flag, users in stage_options().items():
+        kind = users[0][1].kind
+        parser.add_argument(
+            "--" + flag.replace("_", "-"), dest=flag, type=_TYPES.get(kind),
+            choices=users[0][1].choices or None,
+            help="; ".join(f"{stage}: {p.help}" + (f" (default {p.default})" if p.default is not None else "")
+                           for stage, p in users),
+        )
     parser.add_argument("--sort", choices=("plas", "morton", "random", "none"), help="grid sorting (default: the rate point's)")
     parser.add_argument("--preset", help="speed preset of the lossy codec (x265: ultrafast ... slow ... placebo)")
     parser.add_argument("--seed", type=int, help="seed of the sorting and of the vq k-means (default: the rate point's)")
@@ -51,16 +60,17 @@ def run(args: argparse.Namespace) -> int:
     point = load_rate_point(args.rate_point)
     stage = args.sh or point.sh_stage
     params = {}
-    for option, (param, stages) in STAGE_OPTIONS.items():
-        value = getattr(args, option)
+    for flag, users in stage_options().items():
+        value = getattr(args, flag)
         if value is None:
             continue
-        if stage not in stages:
-            flag = "--" + option.replace("_", "-")
-            raise GscodecError(f"{flag} applies to --sh {' or '.join(stages)}, not to the {stage!r} stage")
-        params[param] = value
-    if args.seed is not None and stage == "vq":
-        params["seed"] = args.seed  # --seed seeds the k-means as well as the sorting
+        param = next((p for name, p in users if name == stage), None)
+        if param is None:
+            stages = " or ".join(name for name, _ in users)
+            raise GscodecError(f"--{flag.replace('_', '-')} applies to --sh {stages}, not to the {stage!r} stage")
+        params[param.name] = value
+    if args.seed is not None and any(p.name == "seed" for p in STAGES.get(stage).params):
+        params["seed"] = args.seed  # --seed seeds the stage (e.g. vq's k-means) as well as the sorting
     summary = encode_file(
         args.input, args.output, point, sh=args.sh, sort=args.sort, seed=args.seed, preset=args.preset,
         progress=not args.quiet and sys.stderr.isatty(), **params,

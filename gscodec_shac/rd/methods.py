@@ -1,14 +1,15 @@
 """Method recipes: how one run turns a scene's model into bytes and back into a model.
 
+Every SH stage of :data:`gscodec_shac.shac.base.STAGES` is a recipe of the same name
+(stage ``none`` is the recipe ``baseline``) whose parameters are the stage's own
+(``StageParam`` declarations: e.g. ``pca`` takes ``energy_retention`` or
+``n_components``); a new stage is a new recipe with no change here. Besides them:
+
 =========  ==================================================================  ==========
 recipe     what it does                                                        parameters
 =========  ==================================================================  ==========
-baseline   our codec, SH stage ``none`` (every AC coefficient coded)           -
-trunc      SH truncated to a lower degree                                      degree (2)
-pca        SHAC-PCA (paper eq. 23-30)                                           energy_retention (0.99) | n_components
-lst        SHAC-LST, post-hoc ridge fit (eq. 32-36); with ``finetuned``,        refit_subset (0), ridge,
-           the fine-tuned model and its trained T from a compact ``.lst.npz``   finetuned (path | {scene: path})
-vq         k-means SH (gsplat / GSCodec Studio style)                           n_clusters, centroid_bits, n_iter
+lst        also: the fine-tuned model and its trained T from a compact          finetuned (path |
+           ``.lst.npz`` instead of the post-hoc fit                             {scene: path})
 spz        Niantic SPZ written and read back by splat-transform                version (4)
 sog        PlayCanvas SOG written (CPU) and read back by splat-transform       iterations (10)
 fault      harness self-test: fails its first ``times`` attempts (``raise``    mode, times
@@ -16,12 +17,12 @@ fault      harness self-test: fails its first ``times`` attempts (``raise``    m
 =========  ==================================================================  ==========
 
 Codec recipes run at every rate point of the sweep; ``spz`` and ``sog`` have no rate
-points of ours and run once per scene (rate point ``native``).
+points of ours and run once per scene (rate point ``native``). Recipes are found in
+:data:`RECIPES` (a :class:`~gscodec_shac.registry.Registry`).
 """
 
 from __future__ import annotations
 
-import math
 import os
 import time
 from abc import ABC, abstractmethod
@@ -31,6 +32,9 @@ from typing import Any, Callable
 
 from gscodec_shac.errors import GscodecError
 from gscodec_shac.gaussians import GaussianCloud
+from gscodec_shac.registry import Registry
+from gscodec_shac.shac.base import STAGES
+from gscodec_shac.validate import Where
 
 NATIVE = "native"  # the rate-point label of formats with their own fixed settings
 
@@ -76,9 +80,13 @@ class Recipe(ABC):
 
     def check(self, raw: dict[str, Any], base: Path) -> dict[str, Any]:
         """Validated parameters (paths resolved against ``base``); raises :class:`MethodError`."""
-        if raw:
-            raise MethodError(f"recipe {self.name!r} takes no parameters, got {', '.join(sorted(raw))}")
+        self.where.only(raw, ())
         return {}
+
+    @property
+    def where(self) -> Where:
+        """Errors about this recipe's parameters."""
+        return Where(f"recipe {self.name!r}", MethodError)
 
     def skip_reason(self, params: dict[str, Any], scene: str) -> str | None:
         """Why this method cannot run on ``scene`` here (recorded as a skipped row), or None."""
@@ -90,22 +98,6 @@ class Recipe(ABC):
 
 
 # ------------------------------------------------------------------ codec recipes
-def _expect(raw: dict, allowed: dict[str, Callable[[Any], bool]], recipe: str) -> None:
-    for key, value in raw.items():
-        if key not in allowed:
-            raise MethodError(f"recipe {recipe!r}: unknown parameter {key!r} (allowed: {', '.join(sorted(allowed)) or 'none'})")
-        if not allowed[key](value):
-            raise MethodError(f"recipe {recipe!r}: bad value {value!r} for {key!r}")
-
-
-def _is_int(lo: int, hi: int) -> Callable[[Any], bool]:
-    return lambda v: isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi
-
-
-def _is_float(lo: float, hi: float) -> Callable[[Any], bool]:
-    return lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and lo < v <= hi
-
-
 def codec_run(ctx: RunContext, stage: Any, sh_params: dict[str, Any], cloud: GaussianCloud | None = None,
               fit_stage: bool = True) -> Outcome:
     """Encode with our pipeline (sort cached), serialise, decode."""
@@ -135,62 +127,45 @@ def codec_run(ctx: RunContext, stage: Any, sh_params: dict[str, Any], cloud: Gau
     return Outcome(decoded, len(data), dict(stream.attribute_sizes()), encode_s, decode_s, extra)
 
 
-class Baseline(Recipe):
-    name = "baseline"
+class StageRecipe(Recipe):
+    """Our codec with one SH stage; the parameters are the stage's own."""
 
-    def run(self, ctx: RunContext, params: dict[str, Any]) -> Outcome:
-        return codec_run(ctx, "none", {})
-
-
-class Trunc(Recipe):
-    name = "trunc"
+    def __init__(self, name: str, stage: str) -> None:
+        self.name, self.stage = name, stage
 
     def check(self, raw: dict[str, Any], base: Path) -> dict[str, Any]:
-        _expect(raw, {"degree": _is_int(0, 3)}, self.name)
-        return {"degree": raw.get("degree", 2)}
+        return STAGES.get(self.stage).check_params(raw, self.where)
 
     def run(self, ctx: RunContext, params: dict[str, Any]) -> Outcome:
-        return codec_run(ctx, "trunc", {"degree": params["degree"]})
+        return codec_run(ctx, self.stage, dict(params))
 
 
-class Pca(Recipe):
-    name = "pca"
+class Lst(StageRecipe):
+    """SHAC-LST: the post-hoc fit, or a fine-tuned model with its trained T (``finetuned``)."""
 
-    def check(self, raw: dict[str, Any], base: Path) -> dict[str, Any]:
-        _expect(raw, {"energy_retention": _is_float(0.0, 1.0), "n_components": _is_int(1, 128)}, self.name)
-        if "energy_retention" in raw and "n_components" in raw:
-            raise MethodError("recipe 'pca': give energy_retention or n_components, not both")
-        return dict(raw) if raw else {"energy_retention": 0.99}
-
-    def run(self, ctx: RunContext, params: dict[str, Any]) -> Outcome:
-        return codec_run(ctx, "pca", dict(params))
-
-
-class Lst(Recipe):
-    name = "lst"
+    def __init__(self) -> None:
+        super().__init__("lst", "lst")
 
     def check(self, raw: dict[str, Any], base: Path) -> dict[str, Any]:
         raw = dict(raw)
         finetuned = raw.pop("finetuned", None)
-        ridge_ok = lambda v: _is_float(0.0, 1e9)(v) or (v == 0 and not isinstance(v, bool))  # noqa: E731
-        _expect(raw, {"refit_subset": _is_int(0, 1000), "ridge": ridge_ok}, self.name)
-        params = dict(raw)
-        if finetuned is not None:
-            if isinstance(finetuned, (str, os.PathLike)):
-                finetuned = {"*": finetuned}
-            if not isinstance(finetuned, dict) or not finetuned:
-                raise MethodError("recipe 'lst': finetuned must be a path or a mapping scene -> path")
-            if raw:
-                raise MethodError("recipe 'lst': refit_subset/ridge apply to the post-hoc fit, not to a finetuned model")
-            resolved = {}
-            for scene, path in finetuned.items():
-                p = Path(os.path.expanduser(str(path)))
-                p = p if p.is_absolute() else base / p
-                if not p.is_file():
-                    raise MethodError(f"recipe 'lst': finetuned file for {scene!r} not found: {p}")
-                resolved[str(scene)] = str(p.resolve())
-            params["finetuned"] = resolved
-        return params
+        params = super().check(raw, base)
+        if finetuned is None:
+            return params
+        if isinstance(finetuned, (str, os.PathLike)):
+            finetuned = {"*": finetuned}
+        if not isinstance(finetuned, dict) or not finetuned:
+            raise self.where.error("finetuned", "must be a path or a mapping scene -> path")
+        if params:
+            raise self.where.error("finetuned", "the post-hoc fit parameters do not apply to a finetuned model")
+        resolved = {}
+        for scene, path in finetuned.items():
+            p = Path(os.path.expanduser(str(path)))
+            p = p if p.is_absolute() else base / p
+            if not p.is_file():
+                raise self.where.error("finetuned", f"file for {scene!r} not found: {p}")
+            resolved[str(scene)] = str(p.resolve())
+        return {"finetuned": resolved}
 
     def _file(self, params: dict[str, Any], scene: str) -> str | None:
         files = params.get("finetuned") or {}
@@ -204,7 +179,7 @@ class Lst(Recipe):
     def run(self, ctx: RunContext, params: dict[str, Any]) -> Outcome:
         path = self._file(params, ctx.scene) if params.get("finetuned") else None
         if path is None:
-            return codec_run(ctx, "lst", {k: v for k, v in params.items() if k != "finetuned"})
+            return super().run(ctx, params)
         from gscodec_shac.train.finetune import load_finetuned
 
         tuned, stage = load_finetuned(path)
@@ -218,26 +193,15 @@ class Lst(Recipe):
         return outcome
 
 
-class Vq(Recipe):
-    name = "vq"
-
-    def check(self, raw: dict[str, Any], base: Path) -> dict[str, Any]:
-        _expect(raw, {"n_clusters": _is_int(1, 1 << 24), "centroid_bits": _is_int(1, 16), "n_iter": _is_int(1, 1000),
-                      "seed": _is_int(0, 2**32 - 1)}, self.name)
-        return dict(raw)
-
-    def run(self, ctx: RunContext, params: dict[str, Any]) -> Outcome:
-        return codec_run(ctx, "vq", dict(params))
-
-
 class Fault(Recipe):
     """Fails on purpose (tests of retries and failure records); then behaves as ``baseline``."""
 
     name = "fault"
 
     def check(self, raw: dict[str, Any], base: Path) -> dict[str, Any]:
-        _expect(raw, {"mode": lambda v: v in ("raise", "exit"), "times": _is_int(0, 1000)}, self.name)
-        return {"mode": raw.get("mode", "raise"), "times": raw.get("times", 1)}
+        self.where.only(raw, ("mode", "times"))
+        return {"mode": self.where.choice(raw.get("mode", "raise"), ("raise", "exit"), "mode"),
+                "times": self.where.integer(raw.get("times", 1), "times", 0, 1000)}
 
     def run(self, ctx: RunContext, params: dict[str, Any]) -> Outcome:
         ctx.fault_dir.mkdir(parents=True, exist_ok=True)
@@ -294,8 +258,8 @@ class Spz(_External):
     suffix = ".spz"
 
     def check(self, raw: dict[str, Any], base: Path) -> dict[str, Any]:
-        _expect(raw, {"version": lambda v: v in (3, 4)}, self.name)
-        return {"version": raw.get("version", 4)}
+        self.where.only(raw, ("version",))
+        return {"version": self.where.choice(raw.get("version", 4), (3, 4), "version")}
 
     def _encode(self, ply: Path, out: Path, params: dict[str, Any], threads: int) -> None:
         from gscodec_shac.rd.external import encode_spz
@@ -308,8 +272,8 @@ class Sog(_External):
     suffix = ".sog"
 
     def check(self, raw: dict[str, Any], base: Path) -> dict[str, Any]:
-        _expect(raw, {"iterations": _is_int(1, 1000)}, self.name)
-        return {"iterations": raw.get("iterations", 10)}
+        self.where.only(raw, ("iterations",))
+        return {"iterations": self.where.integer(raw.get("iterations", 10), "iterations", 1, 1000)}
 
     def _encode(self, ply: Path, out: Path, params: dict[str, Any], threads: int) -> None:
         from gscodec_shac.rd.external import encode_sog
@@ -322,9 +286,14 @@ class Sog(_External):
         return sog_member_sizes(path)
 
 
-RECIPES: dict[str, Recipe] = {r.name: r for r in (Baseline(), Trunc(), Pca(), Lst(), Vq(), Spz(), Sog(), Fault())}
+RECIPES: Registry[Recipe] = Registry("recipe", __name__, (), error=MethodError)
+for _recipe in (Lst(), Spz(), Sog(), Fault()):
+    RECIPES.register(_recipe)
+for _stage in STAGES.names():  # every other stage: a plain stage recipe ("none" is the baseline)
+    if _stage not in [getattr(r, "stage", None) for _, r in RECIPES.items()]:
+        RECIPES.register(StageRecipe("baseline" if _stage == "none" else _stage, _stage))
 
 
 def rate_points_for(recipe: str, rate_points: tuple[str, ...]) -> tuple[str, ...]:
     """The rate points a method runs at (``native`` only for external formats)."""
-    return (NATIVE,) if RECIPES[recipe].external else rate_points
+    return (NATIVE,) if RECIPES.get(recipe).external else rate_points

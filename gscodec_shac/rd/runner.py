@@ -100,7 +100,7 @@ def failed_row(task: RunTask, error: str, attempts: int, status: str = "failed")
 def execute_run(task: RunTask) -> dict[str, Any]:
     """Run one task with bounded retries; always returns a row (see module docstring)."""
     set_thread_limits(task.threads)
-    recipe = RECIPES[task.method.recipe]
+    recipe = RECIPES.get(task.method.recipe)
     reason = recipe.skip_reason(task.method.params, task.scene.spec.name)
     if reason is not None:
         return failed_row(task, reason, 0, status="skipped")
@@ -142,7 +142,7 @@ def _run_once(task: RunTask) -> dict[str, Any]:
         fault_dir=out_dir / "cache" / "faults", key=task.key,
     )
     try:
-        outcome = RECIPES[task.method.recipe].run(ctx, task.method.params)
+        outcome = RECIPES.get(task.method.recipe).run(ctx, task.method.params)
     finally:
         shutil.rmtree(work_dir, ignore_errors=True)
     lpips_model, lpips_note = load_lpips(task.settings.lpips_weights)

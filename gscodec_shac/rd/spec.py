@@ -38,13 +38,13 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
 from gscodec_shac.errors import GscodecError
+from gscodec_shac.validate import Where
 from gscodec_shac.yaml_file import read_yaml_file
 
 #: Scene inputs that are not Inria PLYs and are converted with splat-transform first.
@@ -194,17 +194,17 @@ def load_sweep(path: str | os.PathLike) -> SweepSpec:
 
 def parse_sweep(data: Any, source: str = "<dict>", base: str | os.PathLike | None = None) -> SweepSpec:
     """Validate an already-parsed sweep document; relative paths are resolved against ``base``."""
-    err = _Errors(source)
+    err = Where(source, SweepSpecError)
     base_dir = Path(base) if base is not None else Path.cwd()
     if not isinstance(data, dict):
-        raise err("", "a sweep must be a mapping with 'scenes', 'methods' and 'rate_points'")
-    err.unknown(data, _TOP_KEYS, "")
+        raise err.error("", "a sweep must be a mapping with 'scenes', 'methods' and 'rate_points'")
+    err.only(data, _TOP_KEYS, "")
     for key in ("scenes", "methods", "rate_points"):
         if key not in data:
-            raise err(key, "is required")
+            raise err.error(key, "is required")
     settings = _settings(data.get("settings") or {}, err, base_dir)
-    scenes = _list(data["scenes"], "scenes", err)
-    methods = _list(data["methods"], "methods", err)
+    scenes = err.sequence(data["scenes"], "scenes")
+    methods = err.sequence(data["methods"], "methods")
     rate_points = _rate_points(data["rate_points"], err, base_dir)
     scene_specs = tuple(_scene(raw, f"scenes[{i}]", err, base_dir) for i, raw in enumerate(scenes))
     method_specs = tuple(_method(raw, f"methods[{i}]", err, base_dir) for i, raw in enumerate(methods))
@@ -212,109 +212,64 @@ def parse_sweep(data: Any, source: str = "<dict>", base: str | os.PathLike | Non
     _unique([m.name for m in method_specs], "methods", err)
     name = data.get("name", Path(source).stem if source != "<dict>" else "sweep")
     if not isinstance(name, str) or not name:
-        raise err("name", f"must be a non-empty string, got {name!r}")
+        raise err.error("name", f"must be a non-empty string, got {name!r}")
     description = data.get("description", "")
     if not isinstance(description, str):
-        raise err("description", "must be a string")
+        raise err.error("description", "must be a string")
     return SweepSpec(name, scene_specs, method_specs, rate_points, settings, source, description)
 
 
-class _Errors:
-    """Builds :class:`SweepSpecError` messages naming the file and key."""
-
-    def __init__(self, source: str) -> None:
-        self.source = source
-
-    def __call__(self, key: str, problem: str) -> SweepSpecError:
-        where = f"{self.source}: key {key!r}: " if key else f"{self.source}: "
-        return SweepSpecError(where + problem)
-
-    def unknown(self, mapping: Mapping, allowed: set[str], prefix: str) -> None:
-        extra = sorted(str(k) for k in set(mapping) - allowed)
-        if extra:
-            key = f"{prefix}.{extra[0]}" if prefix else extra[0]
-            raise self(key, f"unknown key (allowed: {', '.join(sorted(allowed))})")
-
-
-def _list(value: Any, key: str, err: _Errors) -> list:
-    if not isinstance(value, list) or not value:
-        raise err(key, "must be a non-empty list")
-    return value
-
-
-def _unique(names: list[str], key: str, err: _Errors) -> None:
+def _unique(names: list[str], key: str, err: Where) -> None:
     seen: set[str] = set()
     for name in names:
         if name in seen:
-            raise err(key, f"name {name!r} is used twice")
+            raise err.error(key, f"name {name!r} is used twice")
         seen.add(name)
 
 
-def _name(value: Any, key: str, err: _Errors) -> str:
+def _name(value: Any, key: str, err: Where) -> str:
     if not isinstance(value, str) or not value or any(c in value for c in "/\\:\n") or value.startswith("."):
-        raise err(key, f"must be a non-empty name without '/', '\\', ':' or a leading '.', got {value!r}")
+        raise err.error(key, f"must be a non-empty name without '/', '\\', ':' or a leading '.', got {value!r}")
     return value
 
 
-def _path(value: Any, key: str, err: _Errors, base: Path, *, must_exist: bool = True) -> str:
+def _path(value: Any, key: str, err: Where, base: Path, *, must_exist: bool = True) -> str:
     if not isinstance(value, (str, os.PathLike)) or not str(value):
-        raise err(key, f"must be a path, got {value!r}")
+        raise err.error(key, f"must be a path, got {value!r}")
     path = Path(os.path.expanduser(str(value)))
     path = path if path.is_absolute() else (base / path)
     if must_exist and not path.exists():
-        raise err(key, f"{path} does not exist")
+        raise err.error(key, f"{path} does not exist")
     return str(path.resolve())
 
 
-def _int(raw: Mapping, name: str, key: str, err: _Errors, default: int | None, lo: int, hi: int | None = None) -> int | None:
+def _int(raw: Mapping, name: str, key: str, err: Where, default: int | None, lo: int, hi: int | None = None) -> int | None:
     value = raw.get(name, default)
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, int) or value < lo or (hi is not None and value > hi):
-        bound = f"{lo}..{hi}" if hi is not None else f">= {lo}"
-        raise err(key, f"must be an integer {bound}, got {value!r}")
-    return value
+    return None if value is None else err.integer(value, key, lo, hi)
 
 
-def _bool(raw: Mapping, name: str, key: str, err: _Errors, default: bool) -> bool:
+def _bool(raw: Mapping, name: str, key: str, err: Where, default: bool) -> bool:
+    return err.boolean(raw.get(name, default), key)
+
+
+def _number(raw: Mapping, name: str, key: str, err: Where, default: float | None, lo: float, hi: float) -> float | None:
     value = raw.get(name, default)
-    if not isinstance(value, bool):
-        raise err(key, f"must be true or false, got {value!r}")
-    return value
+    return None if value is None else err.number(value, key, lo, hi)
 
 
-def _number(raw: Mapping, name: str, key: str, err: _Errors, default: float | None, lo: float, hi: float) -> float | None:
-    value = raw.get(name, default)
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or not lo <= value <= hi:
-        raise err(key, f"must be a number in [{lo}, {hi}], got {value!r}")
-    return float(value)
-
-
-def _vector3(value: Any, key: str, err: _Errors, lo: float = -math.inf, hi: float = math.inf) -> tuple[float, float, float]:
-    if (
-        not isinstance(value, (list, tuple)) or len(value) != 3
-        or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not lo <= v <= hi for v in value)
-    ):
-        bounds = f" in [{lo:g}, {hi:g}]" if math.isfinite(lo) else ""
-        raise err(key, f"must be a list of 3 numbers{bounds}, got {value!r}")
-    return (float(value[0]), float(value[1]), float(value[2]))
-
-
-def _settings(raw: Any, err: _Errors, base: Path) -> EvalSettings:
+def _settings(raw: Any, err: Where, base: Path) -> EvalSettings:
     if not isinstance(raw, dict):
-        raise err("settings", "must be a mapping")
-    err.unknown(raw, _SETTINGS_KEYS, "settings")
+        raise err.error("settings", "must be a mapping")
+    err.only(raw, _SETTINGS_KEYS, "settings")
     sort = raw.get("sort")
     if sort is not None and sort not in SORT_METHODS:
-        raise err("settings.sort", f"must be one of {', '.join(SORT_METHODS)} or null, got {sort!r}")
+        raise err.error("settings.sort", f"must be one of {', '.join(SORT_METHODS)} or null, got {sort!r}")
     preset = raw.get("preset")
     if preset is not None and (not isinstance(preset, str) or not preset):
-        raise err("settings.preset", f"must be an x265 preset name, got {preset!r}")
+        raise err.error("settings.preset", f"must be an x265 preset name, got {preset!r}")
     anchor = raw.get("anchor", "baseline")
     if not isinstance(anchor, str) or not anchor:
-        raise err("settings.anchor", f"must be a method name, got {anchor!r}")
+        raise err.error("settings.anchor", f"must be a method name, got {anchor!r}")
     cache_sort = _bool(raw, "cache_sort", "settings.cache_sort", err, True)
     weights = raw.get("lpips_weights")
     return EvalSettings(
@@ -329,18 +284,18 @@ def _settings(raw: Any, err: _Errors, base: Path) -> EvalSettings:
     )
 
 
-def _rate_points(raw: Any, err: _Errors, base: Path) -> tuple[str, ...]:
+def _rate_points(raw: Any, err: Where, base: Path) -> tuple[str, ...]:
     from gscodec_shac.codec.rate_points import builtin_rate_point_files, load_rate_point
 
     if isinstance(raw, str):
         raw = [raw]
-    items = _list(raw, "rate_points", err)
+    items = err.sequence(raw, "rate_points")
     refs = []
     builtin = builtin_rate_point_files()
     for i, ref in enumerate(items):
         key = f"rate_points[{i}]"
         if not isinstance(ref, str) or not ref:
-            raise err(key, f"must be a rate-point reference like paper_table3:rp1, got {ref!r}")
+            raise err.error(key, f"must be a rate-point reference like paper_table3:rp1, got {ref!r}")
         if ":" not in ref and ref in builtin:  # a whole shipped file: every point in it
             from gscodec_shac.codec.rate_points import load_rate_point_file
 
@@ -354,29 +309,29 @@ def _rate_points(raw: Any, err: _Errors, base: Path) -> tuple[str, ...]:
         try:
             load_rate_point(ref)
         except GscodecError as exc:
-            raise err(key, str(exc)) from None
+            raise err.error(key, str(exc)) from None
         refs.append(ref)
     if len(set(refs)) != len(refs):
-        raise err("rate_points", "lists a rate point twice")
+        raise err.error("rate_points", "lists a rate point twice")
     return tuple(refs)
 
 
-def _scene(raw: Any, key: str, err: _Errors, base: Path) -> SceneSpec:
+def _scene(raw: Any, key: str, err: Where, base: Path) -> SceneSpec:
     if not isinstance(raw, dict):
-        raise err(key, "must be a mapping with 'name' and 'ply' (or 'synthetic')")
-    err.unknown(raw, _SCENE_KEYS, key)
+        raise err.error(key, "must be a mapping with 'name' and 'ply' (or 'synthetic')")
+    err.only(raw, _SCENE_KEYS, key)
     name = _name(raw.get("name"), f"{key}.name", err)
     has_ply, has_synth = raw.get("ply") is not None, raw.get("synthetic") is not None
     if has_ply == has_synth:
-        raise err(key, "give exactly one of 'ply' (a file) or 'synthetic' (the built-in scene)")
+        raise err.error(key, "give exactly one of 'ply' (a file) or 'synthetic' (the built-in scene)")
     synthetic = None
     if has_synth:
         syn = raw["synthetic"]
         if syn is True:
             syn = {}
         if not isinstance(syn, dict):
-            raise err(f"{key}.synthetic", "must be a mapping like {n: 20000, seed: 0}")
-        err.unknown(syn, _SYNTHETIC_KEYS, f"{key}.synthetic")
+            raise err.error(f"{key}.synthetic", "must be a mapping like {n: 20000, seed: 0}")
+        err.only(syn, _SYNTHETIC_KEYS, f"{key}.synthetic")
         synthetic = SyntheticSpec(
             n=_int(syn, "n", f"{key}.synthetic.n", err, 20_000, 1_000, 1_000_000),
             seed=_int(syn, "seed", f"{key}.synthetic.seed", err, 0, 0, 2**32 - 1),
@@ -387,22 +342,22 @@ def _scene(raw: Any, key: str, err: _Errors, base: Path) -> SceneSpec:
         )
     ply = _path(raw["ply"], f"{key}.ply", err, base) if has_ply else None
     if raw.get("cameras") is not None and raw.get("orbit") is not None:
-        raise err(key, "give either 'cameras' or 'orbit', not both")
+        raise err.error(key, "give either 'cameras' or 'orbit', not both")
     cameras = _path(raw["cameras"], f"{key}.cameras", err, base) if raw.get("cameras") is not None else None
     orbit = None
     if raw.get("orbit") is not None or (cameras is None and synthetic is None):
         orbit = _orbit(raw.get("orbit") or {}, f"{key}.orbit", err)
     if synthetic is not None and orbit is not None and raw.get("orbit") is not None:
-        raise err(f"{key}.orbit", "the synthetic scene brings its own orbit cameras; set them under 'synthetic'")
+        raise err.error(f"{key}.orbit", "the synthetic scene brings its own orbit cameras; set them under 'synthetic'")
     images = _path(raw["images"], f"{key}.images", err, base) if raw.get("images") is not None else None
     if images is not None and not Path(images).is_dir():
-        raise err(f"{key}.images", f"{images} is not a folder")
+        raise err.error(f"{key}.images", f"{images} is not a folder")
     if images is not None and cameras is None:
-        raise err(f"{key}.images", "ground-truth images need the 'cameras' they were taken with")
-    background = _vector3(raw.get("background", [0, 0, 0]), f"{key}.background", err, 0.0, 1.0)
+        raise err.error(f"{key}.images", "ground-truth images need the 'cameras' they were taken with")
+    background = err.vector3(raw.get("background", [0, 0, 0]), f"{key}.background", 0.0, 1.0)
     note = raw.get("note", "")
     if not isinstance(note, str):
-        raise err(f"{key}.note", "must be a string")
+        raise err.error(f"{key}.note", "must be a string")
     return SceneSpec(
         name=name, ply=ply, synthetic=synthetic, cameras=cameras, orbit=orbit, images=images,
         background=background,
@@ -412,10 +367,10 @@ def _scene(raw: Any, key: str, err: _Errors, base: Path) -> SceneSpec:
     )
 
 
-def _orbit(raw: Any, key: str, err: _Errors) -> OrbitSpec:
+def _orbit(raw: Any, key: str, err: Where) -> OrbitSpec:
     if not isinstance(raw, dict):
-        raise err(key, "must be a mapping like {n: 16, width: 200, height: 150}")
-    err.unknown(raw, _ORBIT_KEYS, key)
+        raise err.error(key, "must be a mapping like {n: 16, width: 200, height: 150}")
+    err.only(raw, _ORBIT_KEYS, key)
     return OrbitSpec(
         n=_int(raw, "n", f"{key}.n", err, 16, 1, 4096),
         width=_int(raw, "width", f"{key}.width", err, 200, 8, 8192),
@@ -423,25 +378,25 @@ def _orbit(raw: Any, key: str, err: _Errors) -> OrbitSpec:
         fov_y=_number(raw, "fov_y", f"{key}.fov_y", err, 50.0, 1.0, 170.0),
         elevation=_number(raw, "elevation", f"{key}.elevation", err, 20.0, -89.0, 89.0),
         radius=_number(raw, "radius", f"{key}.radius", err, None, 1e-9, 1e12),
-        center=_vector3(raw["center"], f"{key}.center", err) if raw.get("center") is not None else None,
-        up=_vector3(raw["up"], f"{key}.up", err) if raw.get("up") is not None else None,
+        center=err.vector3(raw["center"], f"{key}.center") if raw.get("center") is not None else None,
+        up=err.vector3(raw["up"], f"{key}.up") if raw.get("up") is not None else None,
     )
 
 
-def _method(raw: Any, key: str, err: _Errors, base: Path) -> MethodSpec:
+def _method(raw: Any, key: str, err: Where, base: Path) -> MethodSpec:
     from gscodec_shac.rd.methods import RECIPES, MethodError
 
     if isinstance(raw, str):
         raw = {"name": raw, "recipe": raw}
     if not isinstance(raw, dict):
-        raise err(key, "must be a recipe name or a mapping {name, recipe, ...parameters}")
+        raise err.error(key, "must be a recipe name or a mapping {name, recipe, ...parameters}")
     raw = dict(raw)
     name = _name(raw.pop("name", raw.get("recipe")), f"{key}.name", err)
     recipe = raw.pop("recipe", name)
     if recipe not in RECIPES:
-        raise err(f"{key}.recipe", f"unknown recipe {recipe!r} (known: {', '.join(sorted(RECIPES))})")
+        raise err.error(f"{key}.recipe", f"unknown recipe {recipe!r} (known: {', '.join(RECIPES.names())})")
     try:
-        params = RECIPES[recipe].check(raw, base)
+        params = RECIPES.get(recipe).check(raw, base)
     except MethodError as exc:
-        raise err(key, str(exc)) from None
+        raise err.error(key, str(exc)) from None
     return MethodSpec(name, recipe, params)
