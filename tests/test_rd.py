@@ -229,7 +229,7 @@ def test_ray_executor_without_ray_says_how_to_install(monkeypatch, tmp_path):
 
     monkeypatch.setattr(builtins, "__import__", no_ray)
     from gscodec_shac.errors import GscodecError
-    from gscodec_shac.rd.executors import make_executor
+    from gscodec_shac.rd.sweep import make_executor
 
     with pytest.raises(GscodecError, match=r'pip install "gscodec-shac\[distributed\]"'):
         make_executor("ray")

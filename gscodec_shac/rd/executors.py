@@ -7,7 +7,7 @@
   failed; the worker is replaced.
 * :class:`~gscodec_shac.rd.ray_executor.RayExecutor` - one Ray task per run.
 
-Runs are :func:`~gscodec_shac.rd.runner.execute_run` calls, which turn exceptions into
+:func:`gscodec_shac.rd.sweep.make_executor` builds one by name. Runs are :func:`~gscodec_shac.rd.runner.execute_run` calls, which turn exceptions into
 failed rows themselves (bounded retries), so an executor only deals with lost workers.
 Worker processes start with single-threaded BLAS and ``threads`` numba/OpenMP threads
 (:func:`~gscodec_shac.rd.runner.worker_env`): spinning BLAS threads slow small matrix
@@ -27,7 +27,6 @@ from typing import Any, Iterator, Sequence
 from gscodec_shac.errors import GscodecError
 from gscodec_shac.rd.runner import RunTask, execute_run, failed_row, worker_env
 
-EXECUTORS = ("local", "serial", "ray")
 
 
 class Executor(ABC):
@@ -164,19 +163,3 @@ class LocalExecutor(Executor):
         finally:
             for worker in idle + list(running):
                 worker.stop(2.0)
-
-
-def make_executor(
-    kind: str, *, workers: int = 1, threads: int = 1, max_retries: int = 2,
-    address: str | None = None, num_cpus: float | None = None,
-) -> Executor:
-    """An executor by name (``local``, ``serial`` or ``ray``)."""
-    if kind == "serial":
-        return SerialExecutor()
-    if kind == "local":
-        return LocalExecutor(workers, threads, max_retries)
-    if kind == "ray":
-        from gscodec_shac.rd.ray_executor import RayExecutor
-
-        return RayExecutor(address=address, workers=workers, num_cpus=num_cpus, threads=threads, max_retries=max_retries)
-    raise GscodecError(f"unknown executor {kind!r}; use one of {', '.join(EXECUTORS)}")

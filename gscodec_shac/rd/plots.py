@@ -13,7 +13,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from gscodec_shac.rd.report import Curve, curves, short_rate_point
+from gscodec_shac.rd.curves import Curve, curves, short_rate_point
 
 X_AXES = {"mb": ("size (MB)", lambda r: float(r["bytes"]) / 1e6),
           "bpg": ("bits per Gaussian", lambda r: float(r["bits_per_gaussian"]))}

@@ -13,12 +13,13 @@ from __future__ import annotations
 import csv
 import io
 import math
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 from gscodec_shac.rd.bd import bd_quality, bd_rate
 from gscodec_shac.rd.cache import atomic_write_json, atomic_write_text
+from gscodec_shac.rd.curves import Curve, curves, num, ordered, short_rate_point
+from gscodec_shac.rd.plots import plot_scene
 from gscodec_shac.rd.results import load_results
 
 #: Quality metrics a report looks at: (column, label, unit of the BD-quality).
@@ -30,55 +31,6 @@ METRICS = (
 )
 BD_FIELDS = ("scene", "method", "anchor", "metric", "bd_rate_pct", "bd_quality", "size_change_pct", "quality_change",
              "common_points", "points", "anchor_points", "overlap_lo", "overlap_hi", "monotonic", "note")
-
-
-@dataclass
-class Curve:
-    """The ok rows of one (scene, method), sorted by bytes."""
-
-    scene: str
-    method: str
-    rows: list[dict[str, Any]]
-
-    def values(self, column: str) -> list[float]:
-        return [_num(r.get(column)) for r in self.rows]
-
-    def has(self, column: str) -> bool:
-        return any(math.isfinite(v) for v in self.values(column))
-
-
-def _num(value: Any) -> float:
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        return math.nan
-
-
-def short_rate_point(ref: str) -> str:
-    """``paper_table3:rp1`` -> ``rp1``; a path-qualified reference keeps only the point name."""
-    return ref.rsplit(":", 1)[-1] if ":" in ref else Path(ref).stem
-
-
-def ordered(values: Iterable[str]) -> list[str]:
-    seen: list[str] = []
-    for value in values:
-        if value not in seen:
-            seen.append(value)
-    return seen
-
-
-def curves(rows: list[dict[str, Any]]) -> dict[tuple[str, str], Curve]:
-    """Curves of every (scene, method) with at least one ok row, in first-seen order."""
-    out: dict[tuple[str, str], Curve] = {}
-    for row in rows:
-        if row.get("status") != "ok" or not _num(row.get("bytes")) > 0:
-            continue
-        key = (row["scene"], row["method"])
-        out.setdefault(key, Curve(*key, []))
-        out[key].rows.append(row)
-    for curve in out.values():
-        curve.rows.sort(key=lambda r: _num(r.get("bytes")))
-    return out
 
 
 def bd_table(rows: list[dict[str, Any]], anchor: str = "baseline") -> list[dict[str, Any]]:
@@ -135,16 +87,16 @@ def _same_point_changes(base: Curve, curve: Curve, column: str) -> tuple[float |
     """Mean size change (percent) and quality change at the rate points both curves have."""
     anchor = {r["rate_point"]: r for r in base.rows}
     pairs = [(anchor[r["rate_point"]], r) for r in curve.rows if r["rate_point"] in anchor]
-    pairs = [(a, t) for a, t in pairs if math.isfinite(_num(a.get(column))) and math.isfinite(_num(t.get(column)))]
+    pairs = [(a, t) for a, t in pairs if math.isfinite(num(a.get(column))) and math.isfinite(num(t.get(column)))]
     if not pairs:
         return None, None, 0
-    size = sum(_num(t["bytes"]) / _num(a["bytes"]) - 1.0 for a, t in pairs) / len(pairs) * 100.0
-    quality = sum(_num(t[column]) - _num(a[column]) for a, t in pairs) / len(pairs)
+    size = sum(num(t["bytes"]) / num(a["bytes"]) - 1.0 for a, t in pairs) / len(pairs) * 100.0
+    quality = sum(num(t[column]) - num(a[column]) for a, t in pairs) / len(pairs)
     return size, quality, len(pairs)
 
 
 def _fmt(value: Any, digits: int = 2) -> str:
-    number = _num(value)
+    number = num(value)
     return f"{number:.{digits}f}" if math.isfinite(number) else "-"
 
 
@@ -184,7 +136,7 @@ def rd_table_markdown(rows: list[dict[str, Any]]) -> list[str]:
         sizes = row.get("sizes") or {}
         sh = sum(v for k, v in sizes.items() if k in ("sh", "sh_state"))
         share = f"{100.0 * sh / row['bytes']:.0f}%" if sh and row.get("bytes") else "-"
-        cells = [row["method"], short_rate_point(row["rate_point"]), _fmt(_num(row["bytes"]) / 1e6, 3),
+        cells = [row["method"], short_rate_point(row["rate_point"]), _fmt(num(row["bytes"]) / 1e6, 3),
                  _fmt(row.get("bits_per_gaussian"), 1), share]
         if has_gt:
             cells += [_fmt(row.get("psnr_gt")), _fmt(row.get("ssim_gt"), 4)] + ([_fmt(row.get("lpips_gt"), 4)] if has_lpips else [])
@@ -257,7 +209,6 @@ def write_report(
     """Tables, BD-rates and plots of a results folder; returns the written paths by kind."""
     import json
 
-    from gscodec_shac.rd.plots import plot_scene
 
     results = Path(results)
     rows = load_results(results)

@@ -27,7 +27,7 @@ from tqdm.auto import tqdm
 
 from gscodec_shac.errors import GscodecError
 from gscodec_shac.rd.cache import atomic_write_json
-from gscodec_shac.rd.executors import Executor, make_executor
+from gscodec_shac.rd.executors import Executor, LocalExecutor, SerialExecutor
 from gscodec_shac.rd.methods import NATIVE, rate_points_for
 from gscodec_shac.rd.results import ResultStore
 from gscodec_shac.rd.runner import RunTask, failed_row
@@ -157,3 +157,22 @@ def run_sweep(
         failed=sum(1 for r in rows if r.get("status") == "failed"), seconds=time.perf_counter() - tic,
         executor=executor.describe(), scene_errors=errors,
     )
+
+
+EXECUTORS = ("local", "serial", "ray")
+
+
+def make_executor(
+    kind: str, *, workers: int = 1, threads: int = 1, max_retries: int = 2,
+    address: str | None = None, num_cpus: float | None = None,
+) -> Executor:
+    """An executor by name (``local``, ``serial`` or ``ray``)."""
+    if kind == "serial":
+        return SerialExecutor()
+    if kind == "local":
+        return LocalExecutor(workers, threads, max_retries)
+    if kind == "ray":
+        from gscodec_shac.rd.ray_executor import RayExecutor
+
+        return RayExecutor(address=address, workers=workers, num_cpus=num_cpus, threads=threads, max_retries=max_retries)
+    raise GscodecError(f"unknown executor {kind!r}; use one of {', '.join(EXECUTORS)}")
