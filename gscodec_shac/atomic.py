@@ -8,10 +8,14 @@ write (an exception, Ctrl-C) leaves nothing behind. Every writer of user-facing 
 from __future__ import annotations
 
 import contextlib
+import io
+import json
 import os
 import tempfile
 from pathlib import Path
-from typing import BinaryIO, Iterator
+from typing import Any, BinaryIO, Iterator
+
+import numpy as np
 
 from gscodec_shac.errors import GscodecError
 
@@ -45,8 +49,30 @@ def atomic_output(
         raise
 
 
-def write_bytes_atomic(path: str | os.PathLike, data: bytes, **options) -> Path:
-    """Write ``data`` to ``path`` atomically; ``options`` as for :func:`atomic_output`."""
+def write_atomic(path: str | os.PathLike, data: bytes | str, **options: Any) -> Path:
+    """Write ``data`` (text as UTF-8) to ``path`` atomically; ``options`` as for :func:`atomic_output`."""
     with atomic_output(path, **options) as handle:
-        handle.write(data)
+        handle.write(data.encode("utf-8") if isinstance(data, str) else data)
     return Path(path)
+
+
+def write_json(path: str | os.PathLike, value: Any, **options: Any) -> Path:
+    """``value`` as indented JSON (numpy scalars and arrays, paths allowed), written atomically."""
+    return write_atomic(path, json.dumps(value, indent=1, default=_json_default) + "\n", **options)
+
+
+def write_npz(path: str | os.PathLike, arrays: dict[str, np.ndarray], **options: Any) -> Path:
+    """``np.savez`` of ``arrays``, written atomically."""
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return write_atomic(path, buffer.getvalue(), **options)
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")

@@ -2,7 +2,7 @@
 
 import pytest
 
-from gscodec_shac.atomic import atomic_output, write_bytes_atomic
+from gscodec_shac.atomic import atomic_output, write_atomic
 from gscodec_shac.errors import PlyFormatError
 
 
@@ -18,11 +18,11 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
 
 
 def test_a_write_replaces_the_file(tmp_path):
-    target = write_bytes_atomic(tmp_path / "out.bin", b"new", fsync=True)
+    target = write_atomic(tmp_path / "out.bin", b"new", fsync=True)
     assert target.read_bytes() == b"new"
 
 
 def test_missing_folder_raises_the_callers_error_or_is_created(tmp_path):
     with pytest.raises(PlyFormatError, match="output directory .* does not exist"):
-        write_bytes_atomic(tmp_path / "no" / "out.ply", b"x", error=PlyFormatError)
-    assert write_bytes_atomic(tmp_path / "made" / "out.bin", b"x", make_dirs=True).read_bytes() == b"x"
+        write_atomic(tmp_path / "no" / "out.ply", b"x", error=PlyFormatError)
+    assert write_atomic(tmp_path / "made" / "out.bin", b"x", make_dirs=True).read_bytes() == b"x"

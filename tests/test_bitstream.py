@@ -6,7 +6,7 @@ import zlib
 import numpy as np
 import pytest
 
-from gscodec_shac.codec.container import MAGIC, PREAMBLE_SIZE, Bitstream, is_gsc, write_atomic
+from gscodec_shac.codec.container import MAGIC, PREAMBLE_SIZE, Bitstream, is_gsc
 from gscodec_shac.errors import BitstreamError
 from gscodec_shac.codec import Decoder, Encoder
 from gscodec_shac.codec.rate_points import parse_rate_points
@@ -146,5 +146,5 @@ def test_write_is_atomic(tmp_path, encoded):
     assert stream.write(target) == len(encoded)
     assert target.read_bytes() == encoded and is_gsc(target)
     with pytest.raises(BitstreamError, match="does not exist"):
-        write_atomic(tmp_path / "missing" / "out.gsc", b"x")
+        stream.write(tmp_path / "missing" / "out.gsc")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.gsc"]

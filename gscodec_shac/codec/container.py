@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from gscodec_shac.atomic import write_bytes_atomic
+from gscodec_shac.atomic import write_atomic
 from gscodec_shac.errors import BitstreamError
 
 MAGIC = b"\x89GSC\r\n\x1a\n"
@@ -149,7 +149,7 @@ class Bitstream:
     def write(self, path: str | os.PathLike) -> int:
         """Write atomically (temporary file renamed into place); returns the byte count."""
         data = self.to_bytes()
-        write_atomic(path, data)
+        write_atomic(path, data, error=BitstreamError)
         return len(data)
 
     @classmethod
@@ -188,11 +188,6 @@ def is_gsc(path: str | os.PathLike) -> bool:
             return handle.read(len(MAGIC)) == MAGIC
     except OSError:
         return False
-
-
-def write_atomic(path: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same directory."""
-    write_bytes_atomic(path, data, error=BitstreamError)
 
 
 def _check_table(table: Any) -> list[tuple[str, int, int, dict[str, Any]]]:

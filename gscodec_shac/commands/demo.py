@@ -64,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
     import time
 
     from gscodec_shac.errors import GscodecError
-    from gscodec_shac.rd.cache import atomic_write_text
+    from gscodec_shac.atomic import write_atomic
+    from gscodec_shac.rd.cache import DURABLE
     from gscodec_shac.rd.report import bd_markdown, bd_table, short_rate_point, write_report
     from gscodec_shac.rd.spec import parse_sweep
     from gscodec_shac.rd.sweep import run_sweep
@@ -83,8 +84,8 @@ def run(args: argparse.Namespace) -> int:
     table = bd_table(outcome.rows, "baseline")
     bd_md = "\n".join(["# BD-rate of SHAC-PCA (ER 0.99) against the baseline, synthetic scene", ""]
                       + bd_markdown(table, "synthetic")) + "\n"
-    atomic_write_text(out / "bd_table.md", bd_md)
-    atomic_write_text(out / "bd_table.json", json.dumps(table, indent=1) + "\n")
+    write_atomic(out / "bd_table.md", bd_md, **DURABLE)
+    write_atomic(out / "bd_table.json", json.dumps(table, indent=1) + "\n", **DURABLE)
 
     print()
     print(f"{'method':<17}{'point':<6}{'MB':>7}{'bits/G':>8}{'PSNR gt':>9}{'SSIM gt':>9}{'PSNR ref':>9}{'enc s':>7}")

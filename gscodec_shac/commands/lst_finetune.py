@@ -97,12 +97,13 @@ def run(args: argparse.Namespace) -> int:
     if args.images and not Path(args.images).is_dir():
         raise GscodecError(f"{args.images}: no such image folder")
 
+    from gscodec_shac.atomic import write_atomic
     from gscodec_shac.io.cameras import load_cameras, test_split
     from gscodec_shac.io.ply import read_ply
     from gscodec_shac.shac.lst_torch import LSTConfig
     from gscodec_shac.train.finetune import (
         FinetuneConfig,
-        atomic_write_bytes,
+        FinetuneError,
         LstFinetuner,
         checkpoint_path_for,
         log_path_for,
@@ -157,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
         **result.summary(),
     }
     summary_path = summary_path_for(out)
-    atomic_write_bytes(summary_path, (json.dumps(summary, indent=2) + "\n").encode())
+    write_atomic(summary_path, json.dumps(summary, indent=2) + "\n", error=FinetuneError)
     per_step = result.step_seconds_median
     timing = f"{per_step:.3f} s/step median" if per_step is not None else "nothing left to do"
     start = "resumed at step " + str(result.start_step) + ", " if result.resumed else ""

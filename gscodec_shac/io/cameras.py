@@ -29,7 +29,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from gscodec_shac.atomic import write_bytes_atomic
+from gscodec_shac.atomic import write_atomic
 from gscodec_shac.errors import CameraFormatError, ValidationError
 
 PathLike = str | os.PathLike
@@ -313,7 +313,7 @@ def image_size(path: Path) -> tuple[int, int]:
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
-    write_bytes_atomic(path, data, error=CameraFormatError)
+    write_atomic(path, data, error=CameraFormatError)
 
 
 # --------------------------------------------------------------------------- #

@@ -17,7 +17,8 @@ from pathlib import Path
 from typing import Any
 
 from gscodec_shac.rd.bd import bd_quality, bd_rate
-from gscodec_shac.rd.cache import atomic_write_json, atomic_write_text
+from gscodec_shac.atomic import write_atomic, write_json
+from gscodec_shac.rd.cache import DURABLE
 from gscodec_shac.rd.curves import Curve, curves, num, ordered, short_rate_point
 from gscodec_shac.rd.plots import plot_scene
 from gscodec_shac.rd.results import load_results
@@ -228,7 +229,7 @@ def write_report(
             figures[scene] = path.name
             written[f"figure:{scene}"] = path
     name = title or f"RD results: {sweep_info.get('name', folder.name)}"
-    written["markdown"] = atomic_write_text(out_dir / "report.md", markdown_report(rows, table, name, figures))
-    written["bd_json"] = atomic_write_json(out_dir / "bd.json", table)
-    written["bd_csv"] = atomic_write_text(out_dir / "bd.csv", bd_csv(table))
+    written["markdown"] = write_atomic(out_dir / "report.md", markdown_report(rows, table, name, figures), **DURABLE)
+    written["bd_json"] = write_json(out_dir / "bd.json", table, **DURABLE)
+    written["bd_csv"] = write_atomic(out_dir / "bd.csv", bd_csv(table), **DURABLE)
     return written

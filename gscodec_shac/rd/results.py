@@ -18,7 +18,8 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from gscodec_shac.errors import GscodecError
-from gscodec_shac.rd.cache import atomic_write_json, atomic_write_text
+from gscodec_shac.atomic import write_atomic, write_json
+from gscodec_shac.rd.cache import DURABLE
 from gscodec_shac.rd.runner import ROW_FIELDS
 
 LOG_NAME = "runs.jsonl"
@@ -97,8 +98,8 @@ class ResultStore:
         latest = self.latest()
         order = list(keys) if keys is not None else list(latest)
         rows = [latest[k] for k in order if k in latest]
-        atomic_write_json(self.out_dir / JSON_NAME, rows)
-        atomic_write_text(self.out_dir / CSV_NAME, rows_to_csv(rows))
+        write_json(self.out_dir / JSON_NAME, rows, **DURABLE)
+        write_atomic(self.out_dir / CSV_NAME, rows_to_csv(rows), **DURABLE)
         return rows
 
 

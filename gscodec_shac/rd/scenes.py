@@ -27,7 +27,8 @@ import numpy as np
 from gscodec_shac.errors import GscodecError
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.io.cameras import Camera, load_cameras, orbit_cameras, test_split, write_inria_cameras
-from gscodec_shac.rd.cache import atomic_write_json, file_lock, save_npz
+from gscodec_shac.atomic import write_json, write_npz
+from gscodec_shac.rd.cache import DURABLE, file_lock
 from gscodec_shac.rd.spec import OrbitSpec, SceneSpec, file_fingerprint, stable_hash
 
 
@@ -224,8 +225,8 @@ def evaluation_views(scene: PreparedScene, out_dir: str | Path, lpips_model: Any
             if gt is not None:
                 info["psnr_gt"] = float(np.mean([psnr(r, g) for r, g in zip(reference, gt)]))
                 info["ssim_gt"] = float(np.mean([ssim(r, g) for r, g in zip(reference, gt)]))
-            save_npz(renders_path, **{f"view{i}": im for i, im in enumerate(reference)})
-            atomic_write_json(info_path, info)
+            write_npz(renders_path, {f"view{i}": im for i, im in enumerate(reference)}, **DURABLE)
+            write_json(info_path, info, **DURABLE)
     if gt is not None and lpips_model is not None and "lpips_gt" not in info:
         info["lpips_gt"] = float(np.mean([lpips_model(r, g) for r, g in zip(reference, gt)]))
     return EvalViews(cameras, gt, reference, info)

@@ -19,7 +19,8 @@ import numpy as np
 
 from gscodec_shac.codec import Encoder, GridOrder
 from gscodec_shac.gaussians import GaussianCloud
-from gscodec_shac.rd.cache import file_lock, save_npz
+from gscodec_shac.atomic import write_npz
+from gscodec_shac.rd.cache import DURABLE, file_lock
 
 _CACHE_VERSION = "sortcache-2"
 
@@ -55,6 +56,7 @@ def cached_grid_order(encoder: Encoder, cloud: GaussianCloud, cache_dir: str | P
         tic = time.perf_counter()
         grid = encoder.grid_order(cloud)
         seconds = time.perf_counter() - tic
-        save_npz(path, shape=np.asarray(grid.shape, np.int64), order=np.asarray(grid.order, np.int64),
-                 dropped=np.asarray(grid.dropped), policy=np.asarray(grid.policy), seconds=np.asarray(seconds))
+        write_npz(path, {"shape": np.asarray(grid.shape, np.int64), "order": np.asarray(grid.order, np.int64),
+                         "dropped": np.asarray(grid.dropped), "policy": np.asarray(grid.policy),
+                         "seconds": np.asarray(seconds)}, **DURABLE)
     return grid, False, seconds

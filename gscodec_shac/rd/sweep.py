@@ -26,7 +26,8 @@ from typing import Any, Callable
 from tqdm.auto import tqdm
 
 from gscodec_shac.errors import GscodecError
-from gscodec_shac.rd.cache import atomic_write_json
+from gscodec_shac.atomic import write_json
+from gscodec_shac.rd.cache import DURABLE
 from gscodec_shac.rd.executors import Executor, LocalExecutor, SerialExecutor
 from gscodec_shac.rd.methods import NATIVE, rate_points_for
 from gscodec_shac.rd.results import ResultStore
@@ -119,14 +120,14 @@ def run_sweep(
         except (OSError, ValueError) as exc:
             errors[scene.name] = f"{type(exc).__name__}: {exc}"
     tasks = plan(spec, scenes, out, threads)
-    atomic_write_json(out / "sweep.json", {
+    write_json(out / "sweep.json", {
         "name": spec.name, "description": spec.description, "source": spec.source,
         "settings": asdict(spec.settings), "rate_points": list(spec.rate_points),
         "methods": [m.to_json() for m in spec.methods],
         "scenes": {s.name: (scenes[s.name].to_json() if s.name in scenes else {"spec": s.to_json(), "error": errors.get(s.name)})
                    for s in spec.scenes},
         "executor": executor.describe(),
-    })
+    }, **DURABLE)
 
     store = ResultStore(out)
     done = set() if force else store.finished_keys()

@@ -56,7 +56,7 @@ import numpy as np
 import torch
 
 from gscodec_shac import sh_index
-from gscodec_shac.atomic import write_bytes_atomic
+from gscodec_shac.atomic import write_atomic
 from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.io.cameras import Camera, look_at
@@ -536,7 +536,7 @@ class LstFinetuner:
         """Write a checkpoint atomically (temporary file, then rename)."""
         buffer = io.BytesIO()
         torch.save(self.state_dict(), buffer)
-        return atomic_write_bytes(Path(path), buffer.getvalue())
+        return write_atomic(Path(path), buffer.getvalue(), error=FinetuneError)
 
     def load_checkpoint(self, path: PathLike) -> None:
         """Continue from a checkpoint of the same run (fingerprint checked)."""
@@ -669,7 +669,7 @@ def write_log(path: PathLike, rows: Sequence[dict[str, Any]]) -> Path:
     writer.writeheader()
     for row in rows:
         writer.writerow({k: (f"{v:.7g}" if isinstance(v, float) else v) for k, v in row.items()})
-    return atomic_write_bytes(Path(path), text.getvalue().encode())
+    return write_atomic(Path(path), text.getvalue().encode(), error=FinetuneError)
 
 
 def save_compact(path: PathLike, cloud: GaussianCloud, subset: np.ndarray, stage: ShacLST, meta: dict | None = None) -> Path:
@@ -700,7 +700,7 @@ def save_compact(path: PathLike, cloud: GaussianCloud, subset: np.ndarray, stage
     }
     buffer = io.BytesIO()
     np.savez(buffer, **arrays)
-    return atomic_write_bytes(Path(path), buffer.getvalue())
+    return write_atomic(Path(path), buffer.getvalue(), error=FinetuneError)
 
 
 def load_finetuned(path: PathLike) -> tuple[GaussianCloud, ShacLST]:
@@ -756,7 +756,3 @@ def load_finetuned(path: PathLike) -> tuple[GaussianCloud, ShacLST]:
         raise FinetuneError(f"{path}: inconsistent arrays ({exc})") from None
     return cloud, stage
 
-
-def atomic_write_bytes(path: Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` via a temporary file in the same folder and a rename."""
-    return write_bytes_atomic(path, data, error=FinetuneError)
