@@ -57,9 +57,9 @@ import torch
 
 from gscodec_shac import sh_index
 from gscodec_shac.atomic import write_bytes_atomic
+from gscodec_shac.camera import Camera, look_at
 from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac.gaussians import GaussianCloud
-from gscodec_shac.io.cameras import Camera, look_at
 from gscodec_shac.shac.base import StageState
 from gscodec_shac.shac.lst import DEFAULT_RIDGE, ShacLST
 from gscodec_shac.shac.lst_torch import (
