@@ -15,12 +15,12 @@ import pytest
 
 from gscodec_shac.camera import Camera, orbit_cameras, test_split
 from gscodec_shac.errors import CameraFormatError
+from gscodec_shac.geometry import quat_to_rotmat, rotmat_to_quat
 from gscodec_shac.io.cameras import load_cameras
 from gscodec_shac.io.colmap import (
     qvec_to_rotmat,
     read_colmap,
     read_colmap_cameras,
-    rotmat_to_qvec,
     write_colmap_binary,
     write_colmap_text,
 )
@@ -99,11 +99,22 @@ def test_quaternion_conversions_are_inverse():
         q = rng.normal(size=4)
         q /= np.linalg.norm(q)
         q = q if q[0] >= 0 else -q
-        np.testing.assert_allclose(rotmat_to_qvec(qvec_to_rotmat(q)), q, atol=1e-12)
+        np.testing.assert_allclose(rotmat_to_quat(qvec_to_rotmat(q)), q, atol=1e-12)
     np.testing.assert_allclose(qvec_to_rotmat([2.0, 0, 0, 0]), np.eye(3))  # normalised first
     # 90 degrees about z: x -> y
     rot_z90 = qvec_to_rotmat([math.sqrt(0.5), 0, 0, math.sqrt(0.5)])
     np.testing.assert_allclose(rot_z90 @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+
+
+def test_rotmat_to_quat_of_a_nearly_orthonormal_matrix():
+    """A Camera accepts max |R R^T - I| <= 1e-4; the rotation written is within 2x that of the nearest one."""
+    rng = np.random.default_rng(1)
+    noisy = quat_to_rotmat(rng.normal(size=(200, 4))) + rng.normal(scale=2e-5, size=(200, 3, 3))
+    off = np.abs(noisy @ np.swapaxes(noisy, 1, 2) - np.eye(3)).max(axis=(1, 2))
+    u, _, vt = np.linalg.svd(noisy)
+    error = np.abs(quat_to_rotmat(rotmat_to_quat(noisy)) - u @ vt).max(axis=(1, 2))
+    assert np.all(error <= 2 * off)
+    assert np.array_equal(rotmat_to_quat(noisy[7]), rotmat_to_quat(noisy)[7])  # one matrix or a stack
 
 
 @pytest.mark.parametrize("writer", [write_colmap_text, write_colmap_binary])
@@ -120,7 +131,7 @@ def test_colmap_round_trip_sorts_and_shares_intrinsics(tmp_path, writer):
 
 def test_colmap_binary_reader_skips_2d_points(tmp_path):
     write_colmap_binary(tmp_path, [_camera("solo.png")])
-    q = rotmat_to_qvec(np.eye(3))
+    q = rotmat_to_quat(np.eye(3))
     record = struct.pack("<i7di", 7, *q, 0.0, 0.0, 4.0, 1) + b"solo.png\0" + struct.pack("<Q", 2)
     record += struct.pack("<ddq", 1.5, 2.5, -1) + struct.pack("<ddq", 3.5, 4.5, 12)
     (tmp_path / "images.bin").write_bytes(struct.pack("<Q", 1) + record)
@@ -475,7 +486,7 @@ def test_bonsai_binary_round_trip(bonsai_colmap, tmp_path):
     original = [line.split() for line in (BONSAI / "sparse" / "0" / "images.txt").read_text().splitlines()
                 if line.strip() and not line.startswith("#")]
     q_file = np.array([[float(v) for v in items[1:5]] for items in original[:5]])
-    q_ours = np.array([rotmat_to_qvec(c.R) for c in bonsai_colmap[:5]])
+    q_ours = np.array([rotmat_to_quat(c.R) for c in bonsai_colmap[:5]])
     np.testing.assert_allclose(q_ours, q_file * np.sign(q_file[:, :1]), atol=1e-11)
 
 

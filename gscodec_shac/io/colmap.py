@@ -3,8 +3,8 @@
 :func:`read_colmap` returns the :class:`~gscodec_shac.camera.Camera` of every image,
 :func:`read_colmap_cameras` the :class:`ColmapIntrinsics` by camera id;
 :func:`write_colmap_text` and :func:`write_colmap_binary` write PINHOLE models.
-Poses are world-to-camera quaternions (w, x, y, z) plus translations
-(:func:`qvec_to_rotmat`, :func:`rotmat_to_qvec`).
+Poses are world-to-camera quaternions (w, x, y, z) plus translations, converted
+with :func:`gscodec_shac.geometry.quat_to_rotmat` / :func:`~gscodec_shac.geometry.rotmat_to_quat`.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import numpy as np
 
 from gscodec_shac.camera import Camera
 from gscodec_shac.errors import CameraFormatError
+from gscodec_shac.geometry import quat_to_rotmat, rotmat_to_quat
 from gscodec_shac.io.common import atomic_write
 
 PathLike = str | os.PathLike
@@ -242,35 +243,12 @@ def _read_images_txt(path: Path) -> list[_ColmapImage]:
 
 
 def qvec_to_rotmat(qvec: Sequence[float]) -> np.ndarray:
-    """Rotation matrix of a quaternion (w, x, y, z); the quaternion is normalised first."""
+    """Rotation matrix of a COLMAP quaternion (w, x, y, z), normalised first; zero or non-finite ones raise."""
     q = np.asarray(qvec, dtype=np.float64)
     norm = float(np.linalg.norm(q))
     if not (math.isfinite(norm) and norm > 1e-12):
         raise CameraFormatError(f"quaternion {q.tolist()} has zero or non-finite norm")
-    w, x, y, z = q / norm
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def rotmat_to_qvec(rotation: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z), w >= 0, of a rotation matrix (COLMAP's eigenvector method)."""
-    (rxx, ryx, rzx), (rxy, ryy, rzy), (rxz, ryz, rzz) = np.asarray(rotation, dtype=np.float64)
-    k = np.array(
-        [
-            [rxx - ryy - rzz, 0, 0, 0],
-            [ryx + rxy, ryy - rxx - rzz, 0, 0],
-            [rzx + rxz, rzy + ryz, rzz - rxx - ryy, 0],
-            [ryz - rzy, rzx - rxz, rxy - ryx, rxx + ryy + rzz],
-        ]
-    ) / 3.0
-    values, vectors = np.linalg.eigh(k)
-    q = vectors[[3, 0, 1, 2], np.argmax(values)]
-    return -q if q[0] < 0 else q
+    return quat_to_rotmat(q)
 
 
 def read_colmap_cameras(sparse_dir: PathLike) -> dict[int, ColmapIntrinsics]:
@@ -386,8 +364,9 @@ def write_colmap_text(sparse_dir: PathLike, cameras: Sequence[Camera]) -> None:
         "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
         "#   POINTS2D[] as (X, Y, POINT3D_ID)",
     ]
-    for image_id, (camera, cid) in enumerate(zip(cameras, ids), start=1):
-        pose = " ".join(repr(float(v)) for v in (*rotmat_to_qvec(camera.R), *camera.t))
+    qvecs = rotmat_to_quat(np.stack([c.R for c in cameras]))
+    for image_id, (camera, cid, qvec) in enumerate(zip(cameras, ids, qvecs), start=1):
+        pose = " ".join(repr(float(v)) for v in (*qvec, *camera.t))
         lines += [f"{image_id} {pose} {cid} {camera.name}", ""]
     atomic_write(sparse_dir / "images.txt", ("\n".join(lines) + "\n").encode("utf-8"))
     if not (sparse_dir / "points3D.txt").exists():
@@ -404,8 +383,9 @@ def write_colmap_binary(sparse_dir: PathLike, cameras: Sequence[Camera]) -> None
         chunks.append(struct.pack("<iiQQ4d", cid, 1, w, h, fx, fy, cx, cy))
     atomic_write(sparse_dir / "cameras.bin", b"".join(chunks))
     chunks = [struct.pack("<Q", len(cameras))]
-    for image_id, (camera, cid) in enumerate(zip(cameras, ids), start=1):
-        chunks.append(struct.pack("<i7di", image_id, *rotmat_to_qvec(camera.R), *camera.t, cid))
+    qvecs = rotmat_to_quat(np.stack([c.R for c in cameras]))
+    for image_id, (camera, cid, qvec) in enumerate(zip(cameras, ids, qvecs), start=1):
+        chunks.append(struct.pack("<i7di", image_id, *qvec, *camera.t, cid))
         chunks.append(camera.name.encode("utf-8") + b"\0" + struct.pack("<Q", 0))
     atomic_write(sparse_dir / "images.bin", b"".join(chunks))
     if not (sparse_dir / "points3D.bin").exists():
