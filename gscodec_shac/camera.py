@@ -5,8 +5,9 @@ z forward) with a world-to-camera pose ``x_cam = R @ x_world + t``. The camera
 files of 3DGS captures are read in :mod:`gscodec_shac.io` (one module per
 format, :func:`gscodec_shac.io.cameras.load_cameras` for any of them).
 
-:func:`look_at` and :func:`orbit_cameras` make synthetic views, :func:`test_split`
-the standard "every 8th view" evaluation split. Invalid camera fields raise
+:func:`look_at` and :func:`orbit_cameras` make synthetic views (built from
+:func:`orbit_basis` and :func:`camera_on_sphere`), :func:`test_split` the standard
+"every 8th view" evaluation split. Invalid camera fields raise
 :class:`CameraFormatError` with one sentence naming the camera and the problem.
 """
 
@@ -308,19 +309,50 @@ def orbit_cameras(
         )
     if up_v.shape != (3,) or center_v.shape != (3,) or np.linalg.norm(up_v) < 1e-12:
         raise ValidationError("orbit_cameras: center and up must be 3-vectors and up must be non-zero")
+    basis = orbit_basis(up_v)
+    elevation = math.radians(elevation_deg)
+    return [
+        camera_on_sphere(f"orbit_{i:03d}", center_v, radius, 2.0 * math.pi * i / n, elevation, basis, width, height,
+                         fov_y_deg)
+        for i in range(n)
+    ]
+
+
+def orbit_basis(up: Sequence[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(up, e1, e2)``: ``up`` made unit and an orthonormal basis of the plane perpendicular to it.
+
+    ``e1`` is the world axis least aligned with ``up``, made perpendicular to it, and
+    ``e2 = up x e1``. ``up`` must be a non-zero 3-vector (the callers check it).
+    """
+    up_v = np.asarray(up, dtype=np.float64)
     up_v = up_v / np.linalg.norm(up_v)
     ref = np.eye(3)[int(np.argmin(np.abs(up_v)))]
     e1 = ref - (ref @ up_v) * up_v
     e1 /= np.linalg.norm(e1)
-    e2 = np.cross(up_v, e1)
+    return up_v, e1, np.cross(up_v, e1)
+
+
+def camera_on_sphere(
+    name: str,
+    center: np.ndarray,
+    radius: float,
+    azimuth: float,
+    elevation: float,
+    basis: tuple[np.ndarray, np.ndarray, np.ndarray],
+    width: int,
+    height: int,
+    fov_y_deg: float,
+) -> Camera:
+    """A camera at ``radius`` from ``center``, looking at it with ``up`` towards the image top.
+
+    ``basis`` is ``(up, e1, e2)`` from :func:`orbit_basis`; ``azimuth`` (from ``e1``
+    towards ``e2``) and ``elevation`` (towards ``up``) are in radians. Square pixels
+    with a vertical field of view of ``fov_y_deg``, principal point at the image centre.
+    """
+    up_v, e1, e2 = basis
+    direction = math.cos(elevation) * (math.cos(azimuth) * e1 + math.sin(azimuth) * e2) + math.sin(elevation) * up_v
     focal = 0.5 * height / math.tan(0.5 * math.radians(fov_y_deg))
-    elevation = math.radians(elevation_deg)
-    cameras = []
-    for i in range(n):
-        azimuth = 2.0 * math.pi * i / n
-        direction = math.cos(elevation) * (math.cos(azimuth) * e1 + math.sin(azimuth) * e2) + math.sin(elevation) * up_v
-        cameras.append(look_at(f"orbit_{i:03d}", center_v + radius * direction, center_v, up_v, width, height, focal))
-    return cameras
+    return look_at(name, center + radius * direction, center, up_v, width, height, focal)
 
 
 def test_split(cameras: Iterable[Camera], every: int = 8) -> tuple[list[Camera], list[Camera]]:

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from gscodec_shac.camera import Camera, orbit_cameras, test_split
+from gscodec_shac.camera import Camera, camera_on_sphere, orbit_basis, orbit_cameras, test_split
 from gscodec_shac.errors import CameraFormatError, GscodecError, ValidationError
 
 
@@ -116,3 +116,16 @@ def test_split_every_eighth_in_name_order():
     assert len(train) == 14 and [c.name for c in train] == sorted(c.name for c in train)
     assert len(test_split([_camera(f"v{i:03d}") for i in range(292)])[1]) == 37
 
+
+def test_orbit_basis_and_camera_on_sphere_build_the_orbit():
+    up, e1, e2 = orbit_basis((0.0, 0.0, 2.0))
+    np.testing.assert_allclose(np.stack([e1, e2, up]), np.eye(3), atol=1e-15)  # right-handed, unit, orthogonal
+    up, e1, e2 = orbit_basis((0.3, -1.0, 0.2))
+    np.testing.assert_allclose(np.stack([e1, e2, up]) @ np.stack([e1, e2, up]).T, np.eye(3), atol=1e-15)
+    assert np.dot(np.cross(e1, e2), up) == pytest.approx(1.0)
+    center = np.array([1.0, -2.0, 0.5])
+    orbit = orbit_cameras(center, 3.0, 5, 64, 48, 50.0, elevation_deg=-12.0, up=(0.3, -1.0, 0.2))
+    basis = orbit_basis((0.3, -1.0, 0.2))
+    for i, cam in enumerate(orbit):
+        assert camera_on_sphere(cam.name, center, 3.0, 2 * math.pi * i / 5, math.radians(-12.0), basis, 64, 48,
+                                50.0) == cam
