@@ -1,4 +1,4 @@
-"""Quaternion and covariance helpers shared by the generator, codec and renderer.
+"""Quaternion and covariance helpers shared by the generator, codec, renderer and camera files.
 
 Quaternions are (w, x, y, z), as in the Inria PLY. The 3D covariance of a Gaussian
 is ``Sigma = R S S^T R^T`` with ``S = diag(exp(log_scales))`` (paper eq. 2).
@@ -10,7 +10,7 @@ import numpy as np
 
 
 def quat_to_rotmat(quats: np.ndarray) -> np.ndarray:
-    """(N, 4) quaternions, w first, any norm -> (N, 3, 3) rotation matrices."""
+    """(..., 4) quaternions, w first, any norm -> (..., 3, 3) rotation matrices (zero -> identity)."""
     q = np.asarray(quats, dtype=np.float64)
     norm = np.linalg.norm(q, axis=-1, keepdims=True)
     q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([1.0, 0.0, 0.0, 0.0]))
@@ -29,7 +29,11 @@ def quat_to_rotmat(quats: np.ndarray) -> np.ndarray:
 
 
 def rotmat_to_quat(rot: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) proper rotations -> (N, 4) unit quaternions (w first, w >= 0)."""
+    """(..., 3, 3) proper rotations -> (..., 4) unit quaternions (w first, w >= 0).
+
+    For a nearly orthonormal matrix the quaternion's rotation is within about
+    1.5 x max |R R^T - I| of the nearest rotation.
+    """
     m = np.asarray(rot, dtype=np.float64)
     trace = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
     # Shepperd's method: pick the largest of 4 candidates for numerical stability.

@@ -28,9 +28,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from gscodec_shac import sh
+from gscodec_shac.camera import Camera, orbit_cameras
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.geometry import fibonacci_sphere, rotmat_to_quat
-from gscodec_shac.io.cameras import Camera, orbit_cameras
 
 #: Scene centre and orbit used for the default cameras.
 SCENE_CENTER = np.array([0.0, 0.0, 0.35])

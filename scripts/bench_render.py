@@ -58,7 +58,8 @@ def _synthetic_cloud(n: int, cache_dir: Path):
 
 
 def _row_cameras(spec: dict, views: int) -> list:
-    from gscodec_shac.io.cameras import load_cameras, orbit_cameras, test_split
+    from gscodec_shac.camera import orbit_cameras, test_split
+    from gscodec_shac.io.cameras import load_cameras
     from gscodec_shac.synthetic import ORBIT_RADIUS, SCENE_CENTER
 
     if spec["kind"] == "synthetic":
@@ -158,7 +159,8 @@ def stage_breakdown(views: int, cache_dir: Path) -> dict:
 def bonsai_quality() -> dict:
     import numpy as np
 
-    from gscodec_shac.io.cameras import load_cameras, test_split
+    from gscodec_shac.camera import test_split
+    from gscodec_shac.io.cameras import load_cameras
     from gscodec_shac.io.ply import read_ply
     from gscodec_shac.metrics import load_image, psnr, ssim
     from gscodec_shac.render import Renderer

@@ -54,8 +54,9 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from gscodec_shac.camera import Camera, look_at, test_split  # noqa: E402
 from gscodec_shac.gaussians import GaussianCloud  # noqa: E402
-from gscodec_shac.io.cameras import Camera, load_cameras, look_at, test_split  # noqa: E402
+from gscodec_shac.io.cameras import load_cameras  # noqa: E402
 from gscodec_shac.io.ply import read_ply, write_ply  # noqa: E402
 from gscodec_shac.metrics import load_image, psnr, ssim  # noqa: E402
 from gscodec_shac.render import Renderer  # noqa: E402

@@ -96,7 +96,6 @@ def test_the_cycle_finder_finds_a_cycle():
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 
 
-@pytest.mark.xfail(reason="the camera model moves out of io/ in the next change", strict=True)
 def test_render_does_not_depend_on_io():
     modules = _modules()
     for name, path in modules.items():

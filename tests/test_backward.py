@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
+from gscodec_shac.camera import Camera, look_at
 from gscodec_shac.geometry import covariances
 from gscodec_shac.gaussians import GaussianCloud
-from gscodec_shac.io.cameras import Camera, look_at
 from gscodec_shac.render import render
 from gscodec_shac.render.backward import DiffRenderer, covariances_upper, sigmoid
 from gscodec_shac.render.projection import camera_limits

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from gscodec_shac.cli import main as cli_main
-from gscodec_shac.io.cameras import write_inria_cameras
+from gscodec_shac.io.inria_cameras import write_inria_cameras
 from gscodec_shac.io.ply import read_ply, write_ply
 from gscodec_shac.render import Renderer
 from gscodec_shac.render.reference import render_reference

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from gscodec_shac import sh
+from gscodec_shac.camera import Camera, look_at
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.gaussians import GaussianCloud
-from gscodec_shac.io.cameras import Camera, look_at
 from gscodec_shac.render import Renderer, render, render_views, render_weights, warmup
 from gscodec_shac.render.reference import render_reference
 from gscodec_shac.render.shading import view_colors
@@ -225,7 +225,7 @@ def test_cli_render_writes_pngs(tmp_path, small_scene, capsys):
     import cv2
 
     from gscodec_shac.cli import main
-    from gscodec_shac.io.cameras import write_inria_cameras
+    from gscodec_shac.io.inria_cameras import write_inria_cameras
     from gscodec_shac.io.ply import write_ply
 
     ply = tmp_path / "scene.ply"
@@ -250,7 +250,8 @@ def test_bonsai_test_views_reproduce_the_trainers_psnr():
     """An independent exact 3DGS renderer measured these per-view PSNRs on the same model."""
     import json
 
-    from gscodec_shac.io.cameras import load_cameras, test_split
+    from gscodec_shac.camera import test_split
+    from gscodec_shac.io.cameras import load_cameras
     from gscodec_shac.io.ply import read_ply
     from gscodec_shac.metrics import load_image, psnr
     from tests.conftest import shared_scene

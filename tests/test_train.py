@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from gscodec_shac.cli import main
-from gscodec_shac.io.cameras import write_inria_cameras
+from gscodec_shac.io.inria_cameras import write_inria_cameras
 from gscodec_shac.render.output import save_png
 from gscodec_shac.sh import C0
 from gscodec_shac.train import densify as dens

@@ -98,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
         raise GscodecError(f"{args.images}: no such image folder")
 
     from gscodec_shac.atomic import write_atomic
-    from gscodec_shac.io.cameras import load_cameras, test_split
+    from gscodec_shac.camera import test_split
+    from gscodec_shac.io.cameras import load_cameras
     from gscodec_shac.io.ply import read_ply
     from gscodec_shac.shac.lst_torch import LSTConfig
     from gscodec_shac.train.finetune import (

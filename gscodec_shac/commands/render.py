@@ -49,7 +49,7 @@ def _orbit(cloud, views: int, up: list[float], width: int | None, scale: float |
     import numpy as np
 
     from gscodec_shac.errors import GscodecError
-    from gscodec_shac.io.cameras import orbit_cameras
+    from gscodec_shac.camera import orbit_cameras
 
     if views < 1:
         raise GscodecError(f"--orbit-views must be at least 1, got {views}")
@@ -63,7 +63,7 @@ def _orbit(cloud, views: int, up: list[float], width: int | None, scale: float |
 
 def _select(cameras: list, args: argparse.Namespace) -> list:
     from gscodec_shac.errors import GscodecError
-    from gscodec_shac.io.cameras import test_split
+    from gscodec_shac.camera import test_split
 
     if args.every is not None:
         if args.every < 1:

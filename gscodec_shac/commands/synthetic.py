@@ -25,7 +25,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from gscodec_shac.errors import GscodecError
-    from gscodec_shac.io.cameras import write_inria_cameras
+    from gscodec_shac.io.inria_cameras import write_inria_cameras
     from gscodec_shac.io.ply import write_ply
     from gscodec_shac.synthetic import make_synthetic_scene
 

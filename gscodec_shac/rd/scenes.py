@@ -24,10 +24,12 @@ from typing import Any
 
 import numpy as np
 
+from gscodec_shac.camera import Camera, orbit_cameras, test_split
 from gscodec_shac.errors import GscodecError
 from gscodec_shac.gaussians import GaussianCloud
-from gscodec_shac.io.cameras import Camera, load_cameras, orbit_cameras, test_split, write_inria_cameras
 from gscodec_shac.atomic import write_json, write_npz
+from gscodec_shac.io.cameras import load_cameras
+from gscodec_shac.io.inria_cameras import write_inria_cameras
 from gscodec_shac.rd.cache import DURABLE, file_lock
 from gscodec_shac.rd.spec import OrbitSpec, SceneSpec, file_fingerprint, stable_hash
 

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from gscodec_shac.io.cameras import Camera
+from gscodec_shac.camera import Camera
 from gscodec_shac.render.binning import TileBins, bin_gaussians
 from gscodec_shac.render.projection import (
     ALPHA_MIN,

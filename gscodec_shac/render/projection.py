@@ -1,6 +1,6 @@
 """EWA projection of 3D Gaussians to screen-space ellipses (the reference 3DGS preprocess).
 
-Per Gaussian, for one pinhole :class:`~gscodec_shac.io.cameras.Camera`:
+Per Gaussian, for one pinhole :class:`~gscodec_shac.camera.Camera`:
 
 * camera-space centre ``p = R x + t``; culled when ``p_z <= 0.2`` (the reference's near test);
 * 2D covariance ``J R Sigma R^T J^T + 0.3 I`` where ``J`` is the Jacobian of the pinhole
@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from gscodec_shac.io.cameras import Camera
+from gscodec_shac.camera import Camera
 
 #: Tile side in pixels (the reference's BLOCK_X = BLOCK_Y).
 BLOCK = 16

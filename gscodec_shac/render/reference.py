@@ -18,9 +18,9 @@ from typing import Sequence
 import numpy as np
 
 from gscodec_shac import sh
+from gscodec_shac.camera import Camera
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.geometry import covariances
-from gscodec_shac.io.cameras import Camera
 
 _TILE = 16
 

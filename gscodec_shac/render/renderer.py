@@ -18,10 +18,10 @@ from typing import Sequence
 import numpy as np
 import scipy.sparse
 
+from gscodec_shac.camera import Camera
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.geometry import covariances
-from gscodec_shac.io.cameras import Camera
 from gscodec_shac.render.binning import TileBins, bin_gaussians
 from gscodec_shac.render.projection import (
     P_A,
@@ -269,7 +269,7 @@ def render_views(
 
 def warmup() -> float:
     """Compile (or load from numba's on-disk cache) every kernel; returns the seconds it took."""
-    from gscodec_shac.io.cameras import look_at
+    from gscodec_shac.camera import look_at
 
     start = time.perf_counter()
     rng = np.random.default_rng(0)

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from gscodec_shac import sh
-from gscodec_shac.io.cameras import Camera
+from gscodec_shac.camera import Camera
 from gscodec_shac.render.projection import camera_limits
 
 _TILE = 16

@@ -34,9 +34,9 @@ import numba
 import numpy as np
 import torch
 
+from gscodec_shac.camera import Camera
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.gaussians import GaussianCloud
-from gscodec_shac.io.cameras import Camera
 from gscodec_shac.render import Renderer
 from gscodec_shac.render.renderer import parse_background
 from gscodec_shac.sh import sh_basis

@@ -5,7 +5,7 @@ understands (COLMAP ``sparse/0``, Inria ``cameras.json``, NeRF ``transforms_*.js
 
 * **Split.** NeRF-synthetic folders keep their official ``transforms_train`` /
   ``transforms_test`` split (as the 3DGS Blender loader); everything else holds out every 8th
-  camera in name order (:func:`gscodec_shac.io.cameras.test_split`). Test views are never
+  camera in name order (:func:`gscodec_shac.camera.test_split`). Test views are never
   trained on.
 * **Images.** From ``--images SUBDIR`` (e.g. ``images_8``), else ``images``, else the
   lowest-factor ``images_N`` folder present (NeRF: the paths in the transforms). Cameras are
@@ -33,8 +33,11 @@ from typing import Sequence
 
 import numpy as np
 
+from gscodec_shac.camera import Camera, test_split
 from gscodec_shac.errors import CameraFormatError, GscodecError
-from gscodec_shac.io.cameras import Camera, image_size, load_cameras, read_nerf_transforms, test_split
+from gscodec_shac.io.cameras import load_cameras
+from gscodec_shac.io.common import image_size
+from gscodec_shac.io.nerf import read_nerf_transforms
 
 PathLike = str | os.PathLike
 

@@ -57,9 +57,9 @@ import torch
 
 from gscodec_shac import sh_index
 from gscodec_shac.atomic import write_atomic
+from gscodec_shac.camera import Camera, camera_on_sphere, orbit_basis
 from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac.gaussians import GaussianCloud
-from gscodec_shac.io.cameras import Camera, look_at
 from gscodec_shac.shac.base import StageState
 from gscodec_shac.shac.lst import DEFAULT_RIDGE, ShacLST
 from gscodec_shac.shac.lst_torch import (
@@ -201,22 +201,18 @@ def orbit_views(
     up_v = np.asarray(up, dtype=np.float64)
     if up_v.shape != (3,) or np.linalg.norm(up_v) < 1e-12:
         raise ValidationError(f"up must be a non-zero 3-vector, got {list(up)!r}")
-    up_v = up_v / np.linalg.norm(up_v)
+    basis = orbit_basis(up_v)
     centre = np.median(cloud.means.astype(np.float64), axis=0)
     radius = distance * max(float(np.median(np.linalg.norm(cloud.means - centre, axis=1))), 1e-6)
-    ref = np.eye(3)[int(np.argmin(np.abs(up_v)))]
-    e1 = ref - (ref @ up_v) * up_v
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(up_v, e1)
-    focal = 0.5 * height / math.tan(0.5 * math.radians(fov_y_deg))
     rings = len(elevations)
     cameras = []
     for i in range(n_views):
         ring = i % rings
-        elevation = math.radians(elevations[ring])
         azimuth = 2.0 * math.pi * (i / n_views + ring / (2.0 * rings * max(1, n_views // rings)))
-        direction = math.cos(elevation) * (math.cos(azimuth) * e1 + math.sin(azimuth) * e2) + math.sin(elevation) * up_v
-        cameras.append(look_at(f"orbit_{i:03d}", centre + radius * direction, centre, up_v, width, height, focal))
+        elevation = math.radians(elevations[ring])
+        cameras.append(
+            camera_on_sphere(f"orbit_{i:03d}", centre, radius, azimuth, elevation, basis, width, height, fov_y_deg)
+        )
     return cameras
 
 

@@ -482,7 +482,7 @@ def write_outputs(
     model evaluates, unambiguous also where train and test views share names, as in
     NeRF-synthetic) and ``metrics.json`` (per-test-view PSNR / SSIM and their means, sizes,
     schedule, timings); returns the metrics."""
-    from gscodec_shac.io.cameras import write_inria_cameras
+    from gscodec_shac.io.inria_cameras import write_inria_cameras
     from gscodec_shac.io.ply import write_ply
     from gscodec_shac.metrics import psnr, ssim
     from gscodec_shac.render import Renderer

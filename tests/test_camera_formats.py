@@ -1,4 +1,4 @@
-"""Tests of gscodec_shac.io.cameras: the Camera type, every reader/writer and the errors.
+"""Tests of the camera files in gscodec_shac.io: every reader/writer, the dispatcher and the errors.
 
 Real-data tests use ../shared/data/scenes and skip when it is absent.
 """
@@ -13,10 +13,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gscodec_shac.errors import CameraFormatError, GscodecError, ValidationError
-from gscodec_shac.io import cameras as cams
-from gscodec_shac.io.cameras import Camera
+from gscodec_shac.camera import Camera, orbit_cameras, test_split
+from gscodec_shac.errors import CameraFormatError
+from gscodec_shac.geometry import quat_to_rotmat, rotmat_to_quat
+from gscodec_shac.io.cameras import load_cameras
+from gscodec_shac.io.colmap import (
+    qvec_to_rotmat,
+    read_colmap,
+    read_colmap_cameras,
+    write_colmap_binary,
+    write_colmap_text,
+)
+from gscodec_shac.io.inria_cameras import read_inria_cameras, write_inria_cameras
+from gscodec_shac.io.llff import read_llff_poses
+from gscodec_shac.io.nerf import read_nerf_transforms
 from tests.conftest import SHARED_SCENES
+from tests.test_camera import _camera
 
 SCENES = SHARED_SCENES
 SNOWMIKU = SCENES / "snowmiku_capture"
@@ -32,13 +44,6 @@ def _need(*paths: Path):
     return lambda test: pytest.mark.shared_data(skip(test))
 
 
-def _camera(name: str = "cam", **overrides) -> Camera:
-    """A valid camera at (0, 0, -4) looking down +z at the origin."""
-    values = dict(width=64, height=48, fx=50.0, fy=50.0, cx=32.0, cy=24.0, R=np.eye(3), t=np.array([0.0, 0.0, 4.0]))
-    values.update(overrides)
-    return Camera(name, **values)
-
-
 def _stem(name: str) -> str:
     return name.rsplit(".", 1)[0]
 
@@ -52,102 +57,34 @@ def _assert_same_cameras(a: list[Camera], b: list[Camera], atol: float = 1e-12) 
 
 
 # --------------------------------------------------------------------------- #
-# Camera
-# --------------------------------------------------------------------------- #
-
-
-def test_camera_matrices_and_projection():
-    angle = 0.3
-    rz = np.array([[math.cos(angle), -math.sin(angle), 0], [math.sin(angle), math.cos(angle), 0], [0, 0, 1]])
-    cam = _camera(R=rz, t=[0.5, -0.2, 3.0], cx=30.0)
-    np.testing.assert_allclose(cam.K, [[50, 0, 30], [0, 50, 24], [0, 0, 1]])
-    np.testing.assert_allclose(cam.world_to_camera @ cam.camera_to_world, np.eye(4), atol=1e-12)
-    np.testing.assert_allclose(cam.R @ cam.center + cam.t, 0, atol=1e-12)
-    np.testing.assert_allclose(cam.forward, rz[2])
-    assert cam.fov_x == pytest.approx(2 * math.atan(32 / 50))
-    assert cam.fov_y == pytest.approx(2 * math.atan(24 / 50))
-    point = np.array([[0.1, 0.2, 1.0]])
-    uv, depth = cam.project(point)
-    x = rz @ point[0] + cam.t
-    assert depth[0] == pytest.approx(x[2])
-    np.testing.assert_allclose(uv[0], [50 * x[0] / x[2] + 30, 50 * x[1] / x[2] + 24])
-
-
-def test_camera_is_immutable_and_compares_exactly():
-    cam = _camera()
-    with pytest.raises(ValueError):
-        cam.R[0, 0] = 2.0
-    assert cam == _camera()
-    assert cam != _camera(fx=50.0000001)
-    assert cam != _camera(t=[0, 0, 4.000001])
-
-
-def test_resized_and_scaled_keep_the_field_of_view():
-    cam = _camera(width=3958, height=2968, fx=3276.9, fy=3276.9, cx=1979.0, cy=1484.0)
-    small = cam.scaled(1 / 8)
-    assert (small.width, small.height) == (495, 371)  # Inria -r 8 and images_8 sizes
-    assert small.fx == pytest.approx(3276.9 * 495 / 3958)
-    assert small.fy == pytest.approx(3276.9 * 371 / 2968)
-    assert (small.cx, small.cy) == (pytest.approx(247.5), pytest.approx(185.5))
-    assert small.fov_x == pytest.approx(cam.fov_x)
-    assert small.fov_y == pytest.approx(cam.fov_y)
-    np.testing.assert_array_equal(small.R, cam.R)
-    with pytest.raises(CameraFormatError, match="scale factor"):
-        cam.scaled(0)
-
-
-@pytest.mark.parametrize(
-    ("overrides", "message"),
-    [
-        ({"R": np.diag([1.0, 1.0, 1.1])}, "rotation R is not orthonormal"),
-        ({"R": np.diag([1.0, 1.0, -1.0])}, "reflection"),
-        ({"R": np.eye(4)}, r"shape \(4, 4\)"),
-        ({"width": 0}, "width 0 is not a positive integer"),
-        ({"height": 10.5}, "height 10.5 is not a positive integer"),
-        ({"fx": -1.0}, "focal length fx=-1.0 is not positive"),
-        ({"cy": float("nan")}, "cy is not finite"),
-        ({"t": [0.0, float("inf"), 1.0]}, "translation t has non-finite values"),
-        ({"fy": "abc"}, "fy 'abc' is not a number"),
-    ],
-)
-def test_camera_validation(overrides, message):
-    with pytest.raises(CameraFormatError, match=message):
-        _camera(**overrides)
-
-
-def test_camera_format_error_is_a_gscodec_error():
-    assert issubclass(CameraFormatError, GscodecError)
-
-
-# --------------------------------------------------------------------------- #
 # Inria cameras.json
 # --------------------------------------------------------------------------- #
 
 
 def test_inria_round_trip(tmp_path):
-    original = cams.orbit_cameras([1.0, 2.0, 0.5], 3.0, 5, 120, 80, 50.0)
+    original = orbit_cameras([1.0, 2.0, 0.5], 3.0, 5, 120, 80, 50.0)
     path = tmp_path / "cameras.json"
-    cams.write_inria_cameras(path, original)
+    write_inria_cameras(path, original)
     entry = json.loads(path.read_text())[2]
     assert set(entry) == {"id", "img_name", "width", "height", "position", "rotation", "fx", "fy"}
     assert entry["id"] == 2 and entry["img_name"] == "orbit_002"
     np.testing.assert_allclose(entry["position"], original[2].center)
     np.testing.assert_allclose(entry["rotation"], original[2].R.T)  # camera-to-world
-    _assert_same_cameras(cams.read_inria_cameras(path), original, atol=1e-12)
+    _assert_same_cameras(read_inria_cameras(path), original, atol=1e-12)
 
 
 def test_inria_image_extension_found_on_disk(tmp_path):
-    cameras = cams.orbit_cameras([0, 0, 0], 2.0, 3, 16, 16, 40.0)
-    cams.write_inria_cameras(tmp_path / "cameras.json", cameras)
+    cameras = orbit_cameras([0, 0, 0], 2.0, 3, 16, 16, 40.0)
+    write_inria_cameras(tmp_path / "cameras.json", cameras)
     (tmp_path / "orbit_000.JPG").write_bytes(b"x")
     (tmp_path / "orbit_001.png").write_bytes(b"x")
-    read = cams.read_inria_cameras(tmp_path / "cameras.json", image_dir=tmp_path)
+    read = read_inria_cameras(tmp_path / "cameras.json", image_dir=tmp_path)
     assert [c.image_path for c in read] == [tmp_path / "orbit_000.JPG", tmp_path / "orbit_001.png", None]
 
 
 def test_inria_writer_strips_extension_and_warns_on_off_centre_principal_point(tmp_path):
     with pytest.warns(UserWarning, match="off-centre principal point"):
-        cams.write_inria_cameras(tmp_path / "c.json", [_camera("a.JPG", cx=20.0)])
+        write_inria_cameras(tmp_path / "c.json", [_camera("a.JPG", cx=20.0)])
     assert json.loads((tmp_path / "c.json").read_text())[0]["img_name"] == "a"
 
 
@@ -162,36 +99,47 @@ def test_quaternion_conversions_are_inverse():
         q = rng.normal(size=4)
         q /= np.linalg.norm(q)
         q = q if q[0] >= 0 else -q
-        np.testing.assert_allclose(cams.rotmat_to_qvec(cams.qvec_to_rotmat(q)), q, atol=1e-12)
-    np.testing.assert_allclose(cams.qvec_to_rotmat([2.0, 0, 0, 0]), np.eye(3))  # normalised first
+        np.testing.assert_allclose(rotmat_to_quat(qvec_to_rotmat(q)), q, atol=1e-12)
+    np.testing.assert_allclose(qvec_to_rotmat([2.0, 0, 0, 0]), np.eye(3))  # normalised first
     # 90 degrees about z: x -> y
-    rot_z90 = cams.qvec_to_rotmat([math.sqrt(0.5), 0, 0, math.sqrt(0.5)])
+    rot_z90 = qvec_to_rotmat([math.sqrt(0.5), 0, 0, math.sqrt(0.5)])
     np.testing.assert_allclose(rot_z90 @ [1, 0, 0], [0, 1, 0], atol=1e-12)
 
 
-@pytest.mark.parametrize("writer", [cams.write_colmap_text, cams.write_colmap_binary])
+def test_rotmat_to_quat_of_a_nearly_orthonormal_matrix():
+    """A Camera accepts max |R R^T - I| <= 1e-4; the rotation written is within 2x that of the nearest one."""
+    rng = np.random.default_rng(1)
+    noisy = quat_to_rotmat(rng.normal(size=(200, 4))) + rng.normal(scale=2e-5, size=(200, 3, 3))
+    off = np.abs(noisy @ np.swapaxes(noisy, 1, 2) - np.eye(3)).max(axis=(1, 2))
+    u, _, vt = np.linalg.svd(noisy)
+    error = np.abs(quat_to_rotmat(rotmat_to_quat(noisy)) - u @ vt).max(axis=(1, 2))
+    assert np.all(error <= 2 * off)
+    assert np.array_equal(rotmat_to_quat(noisy[7]), rotmat_to_quat(noisy)[7])  # one matrix or a stack
+
+
+@pytest.mark.parametrize("writer", [write_colmap_text, write_colmap_binary])
 def test_colmap_round_trip_sorts_and_shares_intrinsics(tmp_path, writer):
-    cameras = cams.orbit_cameras([0.0, 1.0, 0.0], 2.5, 6, 100, 60, 45.0)[::-1]  # written unsorted
+    cameras = orbit_cameras([0.0, 1.0, 0.0], 2.5, 6, 100, 60, 45.0)[::-1]  # written unsorted
     cameras.append(_camera("extra_wide", fx=20.0, fy=21.0, cx=30.5, cy=22.0))
     writer(tmp_path, cameras)
-    intrinsics = cams.read_colmap_cameras(tmp_path)
+    intrinsics = read_colmap_cameras(tmp_path)
     assert len(intrinsics) == 2 and {c.model for c in intrinsics.values()} == {"PINHOLE"}
-    read = cams.read_colmap(tmp_path)
+    read = read_colmap(tmp_path)
     _assert_same_cameras(read, sorted(cameras, key=lambda c: c.name), atol=1e-13)
-    assert (tmp_path / f"points3D{'.txt' if writer is cams.write_colmap_text else '.bin'}").is_file()
+    assert (tmp_path / f"points3D{'.txt' if writer is write_colmap_text else '.bin'}").is_file()
 
 
 def test_colmap_binary_reader_skips_2d_points(tmp_path):
-    cams.write_colmap_binary(tmp_path, [_camera("solo.png")])
-    q = cams.rotmat_to_qvec(np.eye(3))
+    write_colmap_binary(tmp_path, [_camera("solo.png")])
+    q = rotmat_to_quat(np.eye(3))
     record = struct.pack("<i7di", 7, *q, 0.0, 0.0, 4.0, 1) + b"solo.png\0" + struct.pack("<Q", 2)
     record += struct.pack("<ddq", 1.5, 2.5, -1) + struct.pack("<ddq", 3.5, 4.5, 12)
     (tmp_path / "images.bin").write_bytes(struct.pack("<Q", 1) + record)
-    (cam,) = cams.read_colmap(tmp_path, image_dir=tmp_path)
+    (cam,) = read_colmap(tmp_path, image_dir=tmp_path)
     assert cam == _camera("solo.png")  # image_path None: the file does not exist
     (tmp_path / "images.bin").write_bytes(struct.pack("<Q", 1) + record[:-10])
     with pytest.raises(CameraFormatError, match=r"images\.bin: truncated COLMAP binary file .*2D points of image 7"):
-        cams.read_colmap(tmp_path)
+        read_colmap(tmp_path)
 
 
 def test_colmap_text_images_with_points_and_comments(tmp_path):
@@ -202,7 +150,7 @@ def test_colmap_text_images_with_points_and_comments(tmp_path):
         "10.0 20.0 -1 11.0 21.0 5\n"
         "1 1 0 0 0 0 0 4 3 a.jpg\n"
     )
-    read = cams.read_colmap(tmp_path)
+    read = read_colmap(tmp_path)
     assert [c.name for c in read] == ["a.jpg", "b image.jpg"]  # sorted; names may contain spaces
     assert read[0] == _camera("a.jpg")
 
@@ -218,15 +166,15 @@ def test_colmap_distorted_model_needs_undistortion(tmp_path):
     model = _write_text_model(tmp_path, "1 SIMPLE_RADIAL 64 48 50 32 24 0.03")
     message = r"cameras\.txt: camera model SIMPLE_RADIAL has lens distortion; undistort"
     with pytest.raises(CameraFormatError, match=message):
-        cams.read_colmap(model)
+        read_colmap(model)
     with pytest.warns(UserWarning, match="ignoring the lens distortion"):
-        (cam,) = cams.read_colmap(model, allow_distortion=True)
+        (cam,) = read_colmap(model, allow_distortion=True)
     assert cam == _camera("a.jpg")
 
 
 def test_colmap_zero_distortion_is_pinhole(tmp_path):
     model = _write_text_model(tmp_path, "1 OPENCV 64 48 50 50 32 24 0 0 0 0")
-    assert cams.read_colmap(model) == [_camera("a.jpg")]
+    assert read_colmap(model) == [_camera("a.jpg")]
 
 
 @pytest.mark.parametrize(
@@ -245,41 +193,41 @@ def test_colmap_zero_distortion_is_pinhole(tmp_path):
 def test_colmap_text_errors(tmp_path, camera_line, image_line, message):
     model = _write_text_model(tmp_path, camera_line, image_line)
     with pytest.raises(CameraFormatError, match=message):
-        cams.read_colmap(model)
+        read_colmap(model)
 
 
 def test_colmap_duplicate_image_names(tmp_path):
     images = "1 1 0 0 0 0 0 4 1 a.jpg\n\n2 1 0 0 0 0 0 4 1 a.jpg"
     model = _write_text_model(tmp_path, "1 PINHOLE 64 48 50 50 32 24", images)
     with pytest.raises(CameraFormatError, match="image name 'a.jpg' appears twice"):
-        cams.read_colmap(model)
+        read_colmap(model)
 
 
 def test_colmap_binary_errors(tmp_path):
-    cams.write_colmap_binary(tmp_path, [_camera("a.png")])
+    write_colmap_binary(tmp_path, [_camera("a.png")])
     data = (tmp_path / "cameras.bin").read_bytes()
     (tmp_path / "cameras.bin").write_bytes(data[:30])
     with pytest.raises(CameraFormatError, match=r"cameras\.bin: truncated COLMAP binary file \(30 bytes"):
-        cams.read_colmap_cameras(tmp_path)
+        read_colmap_cameras(tmp_path)
     (tmp_path / "cameras.bin").write_bytes(data[:12] + struct.pack("<i", 42) + data[16:])
     with pytest.raises(CameraFormatError, match="unknown COLMAP model id 42"):
-        cams.read_colmap_cameras(tmp_path)
+        read_colmap_cameras(tmp_path)
     (tmp_path / "cameras.bin").write_bytes(data + b"\0\0")
     with pytest.raises(CameraFormatError, match="2 unexpected bytes"):
-        cams.read_colmap_cameras(tmp_path)
+        read_colmap_cameras(tmp_path)
     (tmp_path / "cameras.bin").write_bytes(data[:12] + struct.pack("<i", 4) + data[16:])  # OPENCV needs 8 params
     with pytest.raises(CameraFormatError, match="truncated"):
-        cams.read_colmap_cameras(tmp_path)
+        read_colmap_cameras(tmp_path)
 
 
 def test_colmap_missing_files(tmp_path):
     with pytest.raises(CameraFormatError, match="no such COLMAP sparse model folder"):
-        cams.read_colmap(tmp_path / "nope")
+        read_colmap(tmp_path / "nope")
     with pytest.raises(CameraFormatError, match=r"has no cameras\.bin or cameras\.txt"):
-        cams.read_colmap(tmp_path)
+        read_colmap(tmp_path)
     (tmp_path / "cameras.txt").write_text("1 PINHOLE 64 48 50 50 32 24\n")
     with pytest.raises(CameraFormatError, match=r"has no images\.bin or images\.txt"):
-        cams.read_colmap(tmp_path)
+        read_colmap(tmp_path)
 
 
 # --------------------------------------------------------------------------- #
@@ -298,7 +246,7 @@ def _transforms(tmp_path: Path, **extra) -> Path:
 
 
 def test_nerf_opengl_to_opencv(tmp_path):
-    (cam,) = cams.read_nerf_transforms(_transforms(tmp_path, w=100, h=80))
+    (cam,) = read_nerf_transforms(_transforms(tmp_path, w=100, h=80))
     assert cam.name == "r_0" and cam.image_path is None
     assert (cam.width, cam.height, cam.cx, cam.cy) == (100, 80, 50, 40)
     assert (cam.fx, cam.fy) == pytest.approx((100.0, 100.0))
@@ -315,7 +263,7 @@ def test_nerf_size_from_first_image(tmp_path):
 
     (tmp_path / "train").mkdir()
     cv2.imwrite(str(tmp_path / "train" / "r_0.png"), np.zeros((30, 40, 4), np.uint8))
-    (cam,) = cams.read_nerf_transforms(_transforms(tmp_path))
+    (cam,) = read_nerf_transforms(_transforms(tmp_path))
     assert (cam.width, cam.height) == (40, 30) and cam.image_path == tmp_path / "train" / "r_0.png"
     assert cam.fx == pytest.approx(40.0)
 
@@ -340,18 +288,18 @@ def test_nerf_errors(tmp_path, content, message):
     path = tmp_path / "transforms_train.json"
     path.write_text(content)
     with pytest.raises(CameraFormatError, match=message):
-        cams.read_nerf_transforms(path)
+        read_nerf_transforms(path)
 
 
 def test_llff_conversion(tmp_path):
-    truth = cams.orbit_cameras([0.5, 0, 0], 3.0, 4, 400, 300, 60.0)
+    truth = orbit_cameras([0.5, 0, 0], 3.0, 4, 400, 300, 60.0)
     rows = []
     for cam in truth:
         right, down, forward = cam.R  # rows of R = camera axes in world
         pose = np.stack([down, right, -forward, cam.center, [300, 400, cam.fx]], axis=1)
         rows.append(np.concatenate([pose.ravel(), [0.1, 10.0]]))
     np.save(tmp_path / "poses_bounds.npy", np.array(rows))
-    read = cams.read_llff_poses(tmp_path / "poses_bounds.npy")
+    read = read_llff_poses(tmp_path / "poses_bounds.npy")
     assert [c.name for c in read] == ["00000", "00001", "00002", "00003"]
     for a, b in zip(read, truth):
         np.testing.assert_allclose(a.R, b.R, atol=1e-12)
@@ -359,13 +307,13 @@ def test_llff_conversion(tmp_path):
         assert (a.width, a.height, a.fx, a.fy) == (400, 300, pytest.approx(b.fx), pytest.approx(b.fy))
     (tmp_path / "images").mkdir()
     with pytest.raises(CameraFormatError, match="has 4 poses but .* has 0 images"):
-        cams.read_llff_poses(tmp_path / "poses_bounds.npy")
+        read_llff_poses(tmp_path / "poses_bounds.npy")
     np.save(tmp_path / "bad.npy", np.zeros((3, 15)))
     with pytest.raises(CameraFormatError, match=r"shape \(N, 17\), got \(3, 15\)"):
-        cams.read_llff_poses(tmp_path / "bad.npy")
+        read_llff_poses(tmp_path / "bad.npy")
     (tmp_path / "junk.npy").write_bytes(b"not numpy")
     with pytest.raises(CameraFormatError, match="not a readable .npy"):
-        cams.read_llff_poses(tmp_path / "junk.npy")
+        read_llff_poses(tmp_path / "junk.npy")
 
 
 # --------------------------------------------------------------------------- #
@@ -375,86 +323,55 @@ def test_llff_conversion(tmp_path):
 
 def test_missing_invalid_and_incomplete_json(tmp_path):
     with pytest.raises(CameraFormatError, match=r"nope\.json: no such cameras\.json file"):
-        cams.read_inria_cameras(tmp_path / "nope.json")
+        read_inria_cameras(tmp_path / "nope.json")
     bad = tmp_path / "bad.json"
     bad.write_text('[{"id": 0,')
     with pytest.raises(CameraFormatError, match=r"bad\.json: invalid JSON at line 1"):
-        cams.read_inria_cameras(bad)
+        read_inria_cameras(bad)
     entry = _camera("v0").to_inria_dict(0)
     del entry["fx"]
     bad.write_text(json.dumps([entry]))
     with pytest.raises(CameraFormatError, match=r"bad\.json: camera entry 0 has no 'fx' key"):
-        cams.read_inria_cameras(bad)
+        read_inria_cameras(bad)
     entry = _camera("v0").to_inria_dict(0)
     entry["rotation"] = [[1, 0, 0], [0, 1, 0], [0, 0, 2]]
     bad.write_text(json.dumps([entry]))
     with pytest.raises(CameraFormatError, match=r"bad\.json: camera entry 0: .*rotation R is not orthonormal"):
-        cams.read_inria_cameras(bad)
+        read_inria_cameras(bad)
     bad.write_text(json.dumps({"a": 1}))
     with pytest.raises(CameraFormatError, match="expected a JSON list"):
-        cams.read_inria_cameras(bad)
+        read_inria_cameras(bad)
     bad.write_text("[]")
     with pytest.raises(CameraFormatError, match="contains no cameras"):
-        cams.read_inria_cameras(bad)
+        read_inria_cameras(bad)
 
 
 def test_load_cameras_dispatch(tmp_path):
-    cameras = cams.orbit_cameras([0, 0, 0], 2.0, 3, 32, 24, 50.0)
-    cams.write_colmap_binary(tmp_path / "cap" / "sparse" / "0", cameras)
+    cameras = orbit_cameras([0, 0, 0], 2.0, 3, 32, 24, 50.0)
+    write_colmap_binary(tmp_path / "cap" / "sparse" / "0", cameras)
     (tmp_path / "cap" / "images").mkdir()
     (tmp_path / "cap" / "images" / "orbit_001").write_bytes(b"x")
-    read = cams.load_cameras(tmp_path / "cap")
+    read = load_cameras(tmp_path / "cap")
     _assert_same_cameras(read, cameras, atol=1e-13)
     assert read[1].image_path == tmp_path / "cap" / "images" / "orbit_001"
-    _assert_same_cameras(cams.load_cameras(tmp_path / "cap" / "sparse" / "0" / "images.bin"), cameras, atol=1e-13)
+    _assert_same_cameras(load_cameras(tmp_path / "cap" / "sparse" / "0" / "images.bin"), cameras, atol=1e-13)
     (tmp_path / "model").mkdir()
-    cams.write_inria_cameras(tmp_path / "model" / "cameras.json", cameras)
-    _assert_same_cameras(cams.load_cameras(tmp_path / "model"), cameras, atol=1e-12)
+    write_inria_cameras(tmp_path / "model" / "cameras.json", cameras)
+    _assert_same_cameras(load_cameras(tmp_path / "model"), cameras, atol=1e-12)
     transforms = _transforms(tmp_path / "model", w=8, h=8)
-    assert len(cams.load_cameras(transforms)) == 1
+    assert len(load_cameras(transforms)) == 1
     (tmp_path / "empty").mkdir()
     message = r"empty: no cameras found \(looked for sparse/0/.*cameras\.json.*poses_bounds\.npy"
     with pytest.raises(CameraFormatError, match=message):
-        cams.load_cameras(tmp_path / "empty")
+        load_cameras(tmp_path / "empty")
     with pytest.raises(CameraFormatError, match="no such camera file or capture folder"):
-        cams.load_cameras(tmp_path / "missing")
+        load_cameras(tmp_path / "missing")
     (tmp_path / "other.json").write_text('{"foo": 1}')
     with pytest.raises(CameraFormatError, match="neither an Inria cameras.json"):
-        cams.load_cameras(tmp_path / "other.json")
+        load_cameras(tmp_path / "other.json")
     (tmp_path / "notes.txt").write_text("hi")
     with pytest.raises(CameraFormatError, match="unrecognised camera file"):
-        cams.load_cameras(tmp_path / "notes.txt")
-
-
-# --------------------------------------------------------------------------- #
-# orbit_cameras and test_split
-# --------------------------------------------------------------------------- #
-
-
-def test_orbit_cameras_look_at_the_centre():
-    center = np.array([1.0, -2.0, 0.5])
-    orbit = cams.orbit_cameras(center, 3.0, 12, 160, 120, 45.0, elevation_deg=30.0, up=(0, 0, 1))
-    assert len(orbit) == 12 and orbit[0].name == "orbit_000"
-    for cam in orbit:
-        uv, depth = cam.project(np.stack([center, center + [0, 0, 0.1]]))
-        np.testing.assert_allclose(uv[0], [80, 60], atol=1e-9)
-        assert depth[0] == pytest.approx(3.0)
-        assert uv[1, 1] < 60  # "up" is at the top of the image
-        assert (cam.center - center)[2] == pytest.approx(3.0 * math.sin(math.radians(30)))
-        assert cam.fov_y == pytest.approx(math.radians(45.0))
-    assert cams.orbit_cameras(center, 3.0, 12, 160, 120, 45.0, elevation_deg=30.0, up=(0, 0, 1)) == orbit
-    angles = [math.atan2(*(c.center - center)[1::-1]) for c in orbit]
-    np.testing.assert_allclose(np.diff(np.unwrap(angles)), 2 * math.pi / 12)
-    with pytest.raises(ValidationError, match="elevation"):
-        cams.orbit_cameras(center, 3.0, 4, 16, 16, 45.0, elevation_deg=90.0)
-
-
-def test_split_every_eighth_in_name_order():
-    views = [_camera(f"v{i:03d}") for i in range(17)][::-1]
-    train, test = cams.test_split(views)
-    assert [c.name for c in test] == ["v000", "v008", "v016"]
-    assert len(train) == 14 and [c.name for c in train] == sorted(c.name for c in train)
-    assert len(cams.test_split([_camera(f"v{i:03d}") for i in range(292)])[1]) == 37
+        load_cameras(tmp_path / "notes.txt")
 
 
 # --------------------------------------------------------------------------- #
@@ -464,9 +381,9 @@ def test_split_every_eighth_in_name_order():
 
 @_need(SNOWMIKU / "cameras.json", SNOWMIKU / "colmap" / "sparse" / "0" / "cameras.bin")
 def test_snowmiku_cameras_json_agrees_with_colmap_bin():
-    views = cams.read_inria_cameras(SNOWMIKU / "cameras.json", image_dir=SNOWMIKU / "images_8")
+    views = read_inria_cameras(SNOWMIKU / "cameras.json", image_dir=SNOWMIKU / "images_8")
     assert len(views) == 97
-    (intr,) = cams.read_colmap_cameras(SNOWMIKU / "colmap" / "sparse" / "0").values()
+    (intr,) = read_colmap_cameras(SNOWMIKU / "colmap" / "sparse" / "0").values()
     assert (intr.model, intr.width, intr.height) == ("PINHOLE", 3958, 2968)
     fx, fy, cx, cy = intr.pinhole
     assert fx == pytest.approx(3276.92, abs=0.01) and (cx, cy) == (1979.0, 1484.0)
@@ -476,17 +393,17 @@ def test_snowmiku_cameras_json_agrees_with_colmap_bin():
     assert all(c.image_path is not None and c.image_path.suffix == ".jpg" for c in views)
     # no images.bin in that model: reading the full model names the missing file
     with pytest.raises(CameraFormatError, match=r"has no images\.bin or images\.txt"):
-        cams.read_colmap(SNOWMIKU / "colmap" / "sparse" / "0")
-    assert len(cams.load_cameras(SNOWMIKU)) == 97  # capture folder -> cameras.json
+        read_colmap(SNOWMIKU / "colmap" / "sparse" / "0")
+    assert len(load_cameras(SNOWMIKU)) == 97  # capture folder -> cameras.json
 
 
 @_need(SNOWMIKU / "colmap" / "distorted" / "cameras.bin")
 def test_snowmiku_distorted_model_is_refused():
-    (intr,) = cams.read_colmap_cameras(SNOWMIKU / "colmap" / "distorted").values()
+    (intr,) = read_colmap_cameras(SNOWMIKU / "colmap" / "distorted").values()
     assert (intr.model, intr.width, intr.height) == ("SIMPLE_RADIAL", 4032, 3024)
     assert intr.params[3] == pytest.approx(0.032123, abs=1e-6) and not intr.is_pinhole
     with pytest.raises(CameraFormatError, match="SIMPLE_RADIAL has lens distortion; undistort the images first"):
-        cams.read_colmap(SNOWMIKU / "colmap" / "distorted")
+        read_colmap(SNOWMIKU / "colmap" / "distorted")
 
 
 def _fraction_in_view(cam: Camera, points: np.ndarray) -> float:
@@ -500,7 +417,7 @@ def test_snowmiku_sfm_points_project_into_the_views():
     plyfile = pytest.importorskip("plyfile")
     vertex = plyfile.PlyData.read(str(SNOWMIKU / "input.ply"))["vertex"]
     points = np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1)
-    views = cams.read_inria_cameras(SNOWMIKU / "cameras.json")
+    views = read_inria_cameras(SNOWMIKU / "cameras.json")
     assert _fraction_in_view(views[0], points) > 0.8  # measured 0.826
     assert np.mean([_fraction_in_view(c, points) for c in views]) > 0.6  # measured 0.71
     # reading "rotation" as world-to-camera instead (a transposed R) sees few points
@@ -512,7 +429,7 @@ def test_snowmiku_sfm_points_project_into_the_views():
 def bonsai_colmap():
     if not (BONSAI / "sparse" / "0" / "images.txt").is_file():
         pytest.skip(f"shared data not available: {BONSAI / 'sparse' / '0'}")
-    return cams.read_colmap(BONSAI / "sparse" / "0", BONSAI / "images")
+    return read_colmap(BONSAI / "sparse" / "0", BONSAI / "images")
 
 
 @pytest.mark.shared_data
@@ -523,14 +440,14 @@ def test_bonsai_colmap_text(bonsai_colmap):
     assert (cam.name, cam.width, cam.height, cam.cx, cam.cy) == ("DSCF5565.JPG", 800, 533, 400.0, 266.5)
     assert (cam.fx, cam.fy) == (826.8636509966, 826.6119708911)
     assert cam.image_path == BONSAI / "images" / "DSCF5565.JPG"
-    train, test = cams.test_split(bonsai_colmap)
+    train, test = test_split(bonsai_colmap)
     assert (len(train), len(test)) == (255, 37)
     assert test[1].name == "DSCF5573.JPG"
 
 
 @_need(BONSAI_JSON)
 def test_bonsai_inria_json_matches_colmap(bonsai_colmap):
-    inria = cams.read_inria_cameras(BONSAI_JSON)
+    inria = read_inria_cameras(BONSAI_JSON)
     assert [c.name for c in inria] == [_stem(c.name) for c in bonsai_colmap]
     for a, b in zip(bonsai_colmap, inria):
         small = a.resized(b.width, b.height)  # 800x533 -> 200x133: fx scales by 1/4, fy by 133/533
@@ -543,7 +460,7 @@ def test_bonsai_inria_json_matches_colmap(bonsai_colmap):
 
 @_need(BONSAI / "poses_bounds.npy")
 def test_bonsai_llff_matches_colmap(bonsai_colmap):
-    llff = cams.read_llff_poses(BONSAI / "poses_bounds.npy", BONSAI / "images")
+    llff = read_llff_poses(BONSAI / "poses_bounds.npy", BONSAI / "images")
     assert [c.name for c in llff] == [c.name for c in bonsai_colmap]
     for a, b in zip(bonsai_colmap, llff):
         assert (b.width, b.height) == (800, 533)
@@ -551,17 +468,17 @@ def test_bonsai_llff_matches_colmap(bonsai_colmap):
         np.testing.assert_allclose(b.R, a.R, rtol=0, atol=1e-5)
         np.testing.assert_allclose(b.t, a.t, rtol=0, atol=1e-5 * np.linalg.norm(a.t))
         assert b.image_path == a.image_path
-    loaded = cams.load_cameras(BONSAI / "poses_bounds.npy")  # images/ next to the file is the default
+    loaded = load_cameras(BONSAI / "poses_bounds.npy")  # images/ next to the file is the default
     assert len(loaded) == 292 and loaded[0] == llff[0]
 
 
 @pytest.mark.shared_data
 def test_bonsai_binary_round_trip(bonsai_colmap, tmp_path):
-    cams.write_colmap_binary(tmp_path / "bin", bonsai_colmap)
-    cams.write_colmap_text(tmp_path / "txt", bonsai_colmap)
-    assert len(cams.read_colmap_cameras(tmp_path / "bin")) == 1  # one shared PINHOLE camera
-    from_bin = cams.read_colmap(tmp_path / "bin", BONSAI / "images")
-    from_txt = cams.read_colmap(tmp_path / "txt", BONSAI / "images")
+    write_colmap_binary(tmp_path / "bin", bonsai_colmap)
+    write_colmap_text(tmp_path / "txt", bonsai_colmap)
+    assert len(read_colmap_cameras(tmp_path / "bin")) == 1  # one shared PINHOLE camera
+    from_bin = read_colmap(tmp_path / "bin", BONSAI / "images")
+    from_txt = read_colmap(tmp_path / "txt", BONSAI / "images")
     _assert_same_cameras(from_bin, bonsai_colmap, atol=1e-14)
     assert from_bin == from_txt  # repr() floats in text: both formats bit-identical
     assert [c.image_path for c in from_bin] == [c.image_path for c in bonsai_colmap]
@@ -569,13 +486,13 @@ def test_bonsai_binary_round_trip(bonsai_colmap, tmp_path):
     original = [line.split() for line in (BONSAI / "sparse" / "0" / "images.txt").read_text().splitlines()
                 if line.strip() and not line.startswith("#")]
     q_file = np.array([[float(v) for v in items[1:5]] for items in original[:5]])
-    q_ours = np.array([cams.rotmat_to_qvec(c.R) for c in bonsai_colmap[:5]])
+    q_ours = np.array([rotmat_to_quat(c.R) for c in bonsai_colmap[:5]])
     np.testing.assert_allclose(q_ours, q_file * np.sign(q_file[:, :1]), atol=1e-11)
 
 
 @_need(CHAIR / "transforms_train.json")
 def test_nerf_synthetic_chair():
-    chair = cams.read_nerf_transforms(CHAIR / "transforms_train.json")
+    chair = read_nerf_transforms(CHAIR / "transforms_train.json")
     assert len(chair) == 100 and chair[0].name == "r_0"
     assert all((c.width, c.height) == (800, 800) for c in chair)  # read from the RGBA PNG
     assert chair[0].fx == pytest.approx(1111.11, abs=0.01) and chair[0].fy == chair[0].fx
@@ -586,4 +503,4 @@ def test_nerf_synthetic_chair():
         uv, depth = cam.project(np.zeros((1, 3)))
         assert depth[0] == pytest.approx(4.031, abs=0.01)
         np.testing.assert_allclose(uv[0], [400, 400], atol=0.5)
-    assert len(cams.load_cameras(CHAIR)) == 100  # folder -> transforms_train.json
+    assert len(load_cameras(CHAIR)) == 100  # folder -> transforms_train.json
