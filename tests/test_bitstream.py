@@ -148,3 +148,27 @@ def test_write_is_atomic(tmp_path, encoded):
     with pytest.raises(BitstreamError, match="does not exist"):
         stream.write(tmp_path / "missing" / "out.gsc")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.gsc"]
+
+
+def test_streams_without_optional_features_stay_version_1(encoded):
+    assert Bitstream.from_bytes(encoded).version == (1, 0) and encoded[8:12] == bytes([1, 0, 0, 0])
+
+
+def test_a_stream_that_needs_a_feature_is_version_2_and_names_it(encoded, monkeypatch):
+    from gscodec_shac.codec import container
+
+    monkeypatch.setitem(container.FEATURES, "test_feature", "a feature only this test knows")
+    stream = Bitstream.from_bytes(encoded)
+    stream.require("test_feature")
+    data = stream.to_bytes()
+    again = Bitstream.from_bytes(data)
+    assert again.version == (2, 0) and again.features == {"test_feature"} and "features" not in again.header
+    monkeypatch.delitem(container.FEATURES, "test_feature")
+    with pytest.raises(BitstreamError, match="needs test_feature, which this version of gscodec-shac does not"):
+        Bitstream.from_bytes(data)
+    with pytest.raises(ValueError, match="unknown stream feature"):
+        stream.require("no_such_feature")
+    future = bytearray(encoded)
+    future[8:10] = (3).to_bytes(2, "little")
+    with pytest.raises(BitstreamError, match="version 3.0; this decoder reads 1.x to 2.x"):
+        Bitstream.from_bytes(bytes(future))

@@ -4,12 +4,18 @@ Layout (all integers little-endian)::
 
     offset  size  field
     0       8     magic  b"\\x89GSC\\r\\n\\x1a\\n"  (catches text-mode mangling, like PNG's)
-    8       2     format major version (a decoder refuses other majors)
+    8       2     format major version (a decoder refuses majors it does not know)
     10      2     format minor version (additions an older decoder may ignore)
     12      4     header length H in bytes
     16      4     CRC32 of the header bytes
     20      H     header: UTF-8 JSON object; ``header["chunks"]`` is the chunk table
     20+H    ...   chunk payloads, back to back, in chunk-table order; nothing after
+
+Versions. A stream is written with the oldest version that can hold it: 1.0 when it
+uses no optional feature (so files that 1.0 decoders read stay byte-identical), else
+2.0 with ``header["features"]``, the sorted names of the features it needs (see
+:data:`FEATURES`). A decoder refuses a feature it does not know, naming it, instead of
+decoding the stream wrongly.
 
 Each chunk-table entry is ``{"name", "size", "crc32", ...}`` plus whatever the
 writer records about the chunk (codec name/version/options, plane shape, bit
@@ -35,8 +41,11 @@ from gscodec_shac.atomic import write_atomic
 from gscodec_shac.errors import BitstreamError
 
 MAGIC = b"\x89GSC\r\n\x1a\n"
-FORMAT_MAJOR = 1
+#: The newest format this code writes and reads; it reads every older major too.
+FORMAT_MAJOR = 2
 FORMAT_MINOR = 0
+#: What a version-2 stream may ask for in ``header["features"]``: name -> what it adds.
+FEATURES: dict[str, str] = {}
 _PREAMBLE = struct.Struct("<8sHHII")
 PREAMBLE_SIZE = _PREAMBLE.size  # 20
 #: The largest header a decoder reads (a real one is a few KiB).
@@ -62,8 +71,10 @@ class Bitstream:
 
     header: dict[str, Any] = field(default_factory=dict)
     chunks: list[Chunk] = field(default_factory=list)
-    #: (major, minor) format version read from a file; new streams get the current one.
-    version: tuple[int, int] = (FORMAT_MAJOR, FORMAT_MINOR)
+    #: (major, minor) format version read from a file (new streams: see :meth:`write_version`).
+    version: tuple[int, int] = (1, 0)
+    #: Optional features the stream needs (names from :data:`FEATURES`).
+    features: set[str] = field(default_factory=set)
 
     # ----------------------------------------------------------- building
     def add_chunk(self, name: str, data: bytes, **meta: Any) -> Chunk:
@@ -85,14 +96,26 @@ class Bitstream:
         return any(c.name == name for c in self.chunks)
 
     # ------------------------------------------------------- serialisation
+    def require(self, feature: str) -> None:
+        """Mark the stream as needing an optional feature (it is then written as version 2)."""
+        if feature not in FEATURES:
+            raise ValueError(f"unknown stream feature {feature!r}; known: {', '.join(sorted(FEATURES))}")
+        self.features.add(feature)
+
+    def write_version(self) -> tuple[int, int]:
+        """The oldest version that holds this stream: 1.0 without optional features, else 2.0."""
+        return (FORMAT_MAJOR, FORMAT_MINOR) if self.features else (1, 0)
+
     def header_bytes(self) -> bytes:
         header = dict(self.header)
+        if self.features:
+            header["features"] = sorted(self.features)
         header["chunks"] = [c.table_entry() for c in self.chunks]
         return json.dumps(header, separators=(",", ":"), sort_keys=False, allow_nan=False).encode("utf-8")
 
     def to_bytes(self) -> bytes:
         header = self.header_bytes()
-        preamble = _PREAMBLE.pack(MAGIC, FORMAT_MAJOR, FORMAT_MINOR, len(header), zlib.crc32(header))
+        preamble = _PREAMBLE.pack(MAGIC, *self.write_version(), len(header), zlib.crc32(header))
         return b"".join([preamble, header, *(c.data for c in self.chunks)])
 
     @classmethod
@@ -106,9 +129,9 @@ class Bitstream:
         magic, major, minor, header_len, header_crc = _PREAMBLE.unpack_from(data)
         if magic != MAGIC:
             raise BitstreamError("not a .gsc file (bad magic)")
-        if major != FORMAT_MAJOR:
+        if not 1 <= major <= FORMAT_MAJOR:
             raise BitstreamError(
-                f"unsupported .gsc format version {major}.{minor}; this decoder reads {FORMAT_MAJOR}.x"
+                f"unsupported .gsc format version {major}.{minor}; this decoder reads 1.x to {FORMAT_MAJOR}.x"
             )
         if header_len > MAX_HEADER_BYTES:
             raise BitstreamError(f"corrupt .gsc file: header length {header_len} exceeds {MAX_HEADER_BYTES}")
@@ -126,6 +149,7 @@ class Bitstream:
         if not isinstance(header, dict):
             raise BitstreamError("corrupt .gsc file: header is not a JSON object")
         table = header.pop("chunks", None)
+        features = _check_features(header.pop("features", None) if major >= 2 else None, major)
         entries = _check_table(table)
         offset = PREAMBLE_SIZE + header_len
         payload_total = sum(size for _, size, _, _ in entries)
@@ -143,7 +167,7 @@ class Bitstream:
                 raise BitstreamError(f"corrupt .gsc file: CRC32 mismatch in chunk {name!r}")
             chunks.append(Chunk(name, payload, meta))
             offset += size
-        return cls(header, chunks, (major, minor))
+        return cls(header, chunks, (major, minor), features)
 
     # ------------------------------------------------------------- files
     def write(self, path: str | os.PathLike) -> int:
@@ -188,6 +212,19 @@ def is_gsc(path: str | os.PathLike) -> bool:
             return handle.read(len(MAGIC)) == MAGIC
     except OSError:
         return False
+
+
+def _check_features(features: Any, major: int) -> set[str]:
+    """The features a version-2 stream needs, each one this decoder knows."""
+    if major < 2:
+        return set()
+    if not isinstance(features, list) or not features or not all(isinstance(f, str) for f in features):
+        raise BitstreamError("corrupt .gsc file: a version 2 header must list its features")
+    unknown = sorted(set(features) - set(FEATURES))
+    if unknown:
+        raise BitstreamError(f"this .gsc file needs {', '.join(unknown)}, which this version of gscodec-shac "
+                             "does not support; update gscodec-shac")
+    return set(features)
 
 
 def _check_table(table: Any) -> list[tuple[str, int, int, dict[str, Any]]]:
