@@ -45,7 +45,9 @@ MAGIC = b"\x89GSC\r\n\x1a\n"
 FORMAT_MAJOR = 2
 FORMAT_MINOR = 0
 #: What a version-2 stream may ask for in ``header["features"]``: name -> what it adds.
-FEATURES: dict[str, str] = {}
+FEATURES: dict[str, str] = {
+    "positions_set": "positions coded as a Morton-sorted set; the grid order follows from them (codec/positions.py)",
+}
 _PREAMBLE = struct.Struct("<8sHHII")
 PREAMBLE_SIZE = _PREAMBLE.size  # 20
 #: The largest header a decoder reads (a real one is a few KiB).

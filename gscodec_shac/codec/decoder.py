@@ -24,7 +24,9 @@ from gscodec_shac.codec.attributes import ATTRIBUTES
 from gscodec_shac.codec.container import Bitstream, Chunk
 from gscodec_shac.codec.encoder import default_workers
 from gscodec_shac.codec.grid.base import GridCodec, get_codec
-from gscodec_shac.codec.layout import occupied, unpack_mask
+from gscodec_shac.codec.layout import occupied, occupied_cells, unpack_mask
+from gscodec_shac.codec.positions import MAX_BITS as MAX_POSITION_BITS
+from gscodec_shac.codec.positions import decode_sorted_codes, morton_decode
 from gscodec_shac.errors import BitstreamError, CodecUnavailableError, GscodecError
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.shac.base import StageState, stage_from_state
@@ -76,9 +78,13 @@ class Decoder:
         if sh is not None and not isinstance(sh, dict):
             raise BitstreamError("corrupt .gsc file: sh is not an object")
         entries = self._attribute_entries(stream, header, sh)
-        mask = self._mask(stream, grid.get("padding"), n, shape[0] * shape[1])
+        cells = self._cells(stream, grid.get("padding"), n, shape)
+        sets = {name: entry for name, entry in entries.items() if entry.get("coding") == "set"}
+        if set(sets) - {"positions"} or (sets and "positions_set" not in stream.features):
+            raise BitstreamError("corrupt .gsc file: only positions can be set-coded, in a stream that says so")
 
-        tasks = [task for name, entry in entries.items() for task in self._chunk_tasks(stream, name, entry, shape)]
+        tasks = [task for name, entry in entries.items() if name not in sets
+                 for task in self._chunk_tasks(stream, name, entry, shape)]
         # Largest chunks first (the SH grid dominates), so no worker is left with it at the end.
         biggest_first = sorted(range(len(tasks)), key=lambda i: -len(tasks[i].chunk.data))
         with ThreadPoolExecutor(self.workers) as pool:
@@ -88,9 +94,11 @@ class Decoder:
                 pass
             planes = [futures[i].result() for i in range(len(tasks))]
         values = {
-            name: _assemble(entry, [(t, p) for t, p in zip(tasks, planes) if t.attribute == name], shape, mask, n)
-            for name, entry in entries.items()
+            name: _assemble(entry, [(t, p) for t, p in zip(tasks, planes) if t.attribute == name], shape, cells)
+            for name, entry in entries.items() if name not in sets
         }
+        if sets:
+            values["positions"] = _position_set(stream, sets["positions"], n)
         ycbcr = header.get("color") == "ycbcr"
         out = {name: ATTRIBUTES[name].inverse(values[name], ycbcr) for name in ATTRIBUTES if name in values}
         sh_dc = out.get("sh_dc")
@@ -151,13 +159,15 @@ class Decoder:
             self._codecs[index] = get_codec(str(info.get("name")), **options)
         return self._codecs[index]
 
-    def _mask(self, stream: Bitstream, padding: Any, n: int, cells: int) -> np.ndarray | None:
-        """Occupied cells (None: the first ``n`` cells in raster order)."""
-        if padding == "tail":
-            return None
-        if padding != "mask":
+    def _cells(self, stream: Bitstream, padding: Any, n: int, shape: tuple[int, int]) -> np.ndarray:
+        """The cells holding the ``n`` Gaussians, in grid order."""
+        if padding not in ("tail", "mask", "zorder"):
             raise BitstreamError(f"corrupt .gsc file: unknown padding layout {padding!r}")
-        return unpack_mask(inflate(stream.chunk("grid_mask"), (cells + 7) // 8), n, cells)
+        mask = None
+        if padding == "mask":
+            count = shape[0] * shape[1]
+            mask = unpack_mask(inflate(stream.chunk("grid_mask"), (count + 7) // 8), n, count)
+        return occupied_cells(padding, shape, n, mask)
 
     def _chunk_tasks(self, stream: Bitstream, name: str, entry: dict, shape: tuple[int, int]) -> list["_ChunkTask"]:
         """One validated decode task per chunk of an attribute."""
@@ -197,7 +207,23 @@ class _ChunkTask:
             raise BitstreamError(f"corrupt .gsc file: chunk {self.chunk.name!r}: {exc}") from None
 
 
-def _assemble(entry: dict, decoded: list, shape: tuple[int, int], mask: np.ndarray | None, n: int) -> np.ndarray:
+def _position_set(stream: Bitstream, entry: dict, n: int) -> np.ndarray:
+    """Set-coded positions (:mod:`.positions`) -> (N, 3) transformed values, in Morton (grid) order."""
+    chunk = stream.chunk("positions")
+    bits = HEADER.integer(chunk.meta.get("bits"), "chunks.positions.bits", 1, MAX_POSITION_BITS)
+    if entry.get("chunks") != ["positions"] or chunk.meta.get("encoding") != "morton_set" or entry["channels"] != 3:
+        raise BitstreamError("corrupt .gsc file: the position set's entry is inconsistent")
+    quantizer = qz.Quantizer.from_json(_object(entry.get("quantizer"), "quantizer"))
+    if quantizer.bits != bits or quantizer.lo.shape != (3,):
+        raise BitstreamError("corrupt .gsc file: the position set's quantiser does not match it")
+    try:
+        codes = decode_sorted_codes(chunk.data, n, bits)
+    except BitstreamError as exc:
+        raise BitstreamError(f"corrupt .gsc file: {exc}") from None
+    return quantizer.dequantize(morton_decode(codes))
+
+
+def _assemble(entry: dict, decoded: list, shape: tuple[int, int], cells: np.ndarray) -> np.ndarray:
     """Decoded planes of one attribute's chunks -> (N, C) values (floats; labels as floats)."""
     count = entry["channels"]
     q = np.zeros((count, *shape), dtype=np.uint16)
@@ -209,7 +235,7 @@ def _assemble(entry: dict, decoded: list, shape: tuple[int, int], mask: np.ndarr
     split = (parts["all"] == 0) & (parts["hi"] == 1) & (parts["lo"] == 1)
     if not np.all(whole | split):
         raise BitstreamError("corrupt .gsc file: an attribute's chunks do not cover each channel exactly once")
-    rows = occupied(q.reshape(count, -1), n, mask)
+    rows = occupied(q.reshape(count, -1), cells)
     if "quantizer" in entry:
         quantizer = qz.Quantizer.from_json(_object(entry["quantizer"], "quantizer"))
         if quantizer.lo.shape != (count,):

@@ -32,7 +32,8 @@ from gscodec_shac.codec import quantize as qz
 from gscodec_shac.codec.attributes import ATTRIBUTES, SH_FEATURES_TRANSFORM
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.grid.base import GridCodec, get_codec
-from gscodec_shac.codec.layout import GridOrder, check_grid, kept_rows, plan_grid, planes, qp_runs
+from gscodec_shac.codec.layout import GridOrder, check_grid, kept_rows, plan_grid, plan_positions_grid, planes, qp_runs
+from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode
 from gscodec_shac.codec.rate_points import AttributeSpec, RatePoint, load_rate_point
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.gaussians import GaussianCloud
@@ -100,8 +101,13 @@ class Encoder:
     def grid_order(self, cloud: GaussianCloud) -> GridOrder:
         """The grid placement :meth:`encode` computes for ``cloud`` (after pruning), to reuse it."""
         kept = kept_rows(cloud, self.rate_point.min_opacity)
-        work = cloud if kept.size == cloud.num_gaussians else cloud.select(kept)
-        return plan_grid(work, self.rate_point.sort, self.progress)
+        return self._plan(cloud if kept.size == cloud.num_gaussians else cloud.select(kept))
+
+    def _plan(self, work: GaussianCloud) -> GridOrder:
+        rp = self.rate_point
+        if rp.positions_as_set:
+            return plan_positions_grid(work, rp.attributes["positions"].bits, rp.sort.multiple)
+        return plan_grid(work, rp.sort, self.progress)
 
     def encode(self, cloud: GaussianCloud, grid: GridOrder | None = None) -> Bitstream:
         """Compress ``cloud`` into a :class:`Bitstream` (deterministic for equal input).
@@ -115,8 +121,9 @@ class Encoder:
             kept = kept_rows(cloud, rp.min_opacity)
             work = cloud if kept.size == cloud.num_gaussians else cloud.select(kept)
         with self._timed("sort"):
-            grid = plan_grid(work, rp.sort, self.progress) if grid is None else check_grid(grid, work)
-            rows = grid.rows
+            grid = self._plan(work) if grid is None else check_grid(grid, work)
+            cells = grid.cells()
+            rows = grid.order[cells]
             grid_cloud = work.select(rows)
             self.order_ = kept[rows]
         with self._timed("sh_stage"):
@@ -128,7 +135,7 @@ class Encoder:
         if padding == "mask":  # empty cells inside the grid: store which cells are occupied
             packed, raw_size = grid.mask_chunk()
             stream.add_chunk("grid_mask", packed, attribute="grid", encoding="zlib", raw_size=raw_size)
-        cell_rows = grid.cell_rows()
+        cell_rows = grid.cell_rows(cells)
         ycbcr = rp.color == "ycbcr"
         attributes: dict[str, Any] = {}
         with self._timed("quantize"):
@@ -136,6 +143,9 @@ class Encoder:
                 if name == "sh_dc" and stage is not None and stage.uses_dc:
                     continue  # the DC travels inside the stage's features
                 values = attr.forward(grid_cloud, ycbcr)
+                if name == "positions" and rp.positions_as_set:
+                    attributes[name] = self._code_position_set(values, rp.attributes[name], stream)
+                    continue
                 attributes[name] = self._code_values(name, attr.transform, values, rp.attributes[name], cell_rows,
                                                      grid.shape, attr.groups)
             if features is not None and features.shape[1]:
@@ -160,7 +170,7 @@ class Encoder:
             "input_gaussians": cloud.num_gaussians,
             "sh_degree": cloud.sh_degree,
             "grid": {"height": grid.shape[0], "width": grid.shape[1], "padding": padding, "policy": grid.policy,
-                     "dropped": grid.dropped, "sort": rp.sort.to_json()},
+                     "dropped": grid.dropped, "sort": None if rp.positions_as_set else rp.sort.to_json()},
             "prune": {"min_opacity": rp.min_opacity, "pruned": int(cloud.num_gaussians - kept.size)},
             "color": rp.color,
             "sh": sh_header,
@@ -186,6 +196,16 @@ class Encoder:
             ac = np.concatenate([cloud.sh_dc, ac], axis=1)
         features = stage.fit_transform(ac) if (self.fit_stage or self._stage_instance is None) else stage.transform(ac)
         return stage, np.asarray(features)
+
+    def _code_position_set(self, values: np.ndarray, spec: AttributeSpec, stream: Bitstream) -> dict:
+        """Positions as a Morton-sorted set (:mod:`.positions`); the grid order is their Morton order."""
+        quantizer = qz.Quantizer.fit(values, spec.bits)
+        codes = morton_encode(quantizer.quantize(values))
+        stream.require("positions_set")
+        stream.add_chunk("positions", encode_sorted_codes(codes), attribute="positions", encoding="morton_set",
+                         bits=spec.bits)
+        return {"chunks": ["positions"], "channels": 3, "coding": "set", "transform": ATTRIBUTES["positions"].transform,
+                "quantizer": quantizer.to_json()}
 
     def _code_sh(self, stage: ShStage, features: np.ndarray, cell_rows: np.ndarray, shape: tuple[int, int]) -> dict:
         spec = self.rate_point.attributes[stage.rate_attribute]

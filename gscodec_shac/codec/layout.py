@@ -7,6 +7,11 @@ empty) -> :func:`planes` turns (N, C) values in grid order into (C, H, W) planes
 cells repeating the previous value (smooth for the grid codecs). When empty cells lie
 inside the grid, the container stores which cells are occupied (``grid_mask``).
 
+With positions coded as a set (rate-point layout ``set``, :mod:`.positions`) the order is
+not sorted but follows from the quantised positions: :func:`plan_positions_grid` puts the
+k-th Gaussian in Morton order into the k-th cell of the grid's 2-D Z-order curve
+(``padding = "zorder"``: the decoder knows the occupied cells without a mask).
+
 Sorting is the slowest step of an encode and depends only on the cloud and the
 rate point's sort and prune settings: :meth:`gscodec_shac.codec.Encoder.grid_order`
 computes a :class:`GridOrder` once and ``Encoder.encode(cloud, grid=...)`` reuses it
@@ -36,24 +41,67 @@ class GridOrder(NamedTuple):
     policy: str
 
     @property
-    def rows(self) -> np.ndarray:
-        """Rows of the pruned cloud in grid order (the occupied cells, row by row)."""
-        return self.order[self.order >= 0]
-
-    @property
     def padding(self) -> str:
-        """``tail`` when the occupied cells are the first N, else ``mask`` (stored in the file)."""
+        """``tail`` when the occupied cells are the first N, ``zorder`` when they are the first N along
+        the grid's Z-order curve (positions coded as a set), else ``mask`` (stored in the file)."""
+        if self.policy == GEOMETRY:
+            return "zorder"
         n = int(np.count_nonzero(self.order >= 0))
         return "tail" if bool(np.all(self.order[:n] >= 0)) else "mask"
 
-    def cell_rows(self) -> np.ndarray:
-        """For each cell, the grid-order row it shows: its own, or the previous row for an empty cell."""
-        return np.maximum(np.cumsum(self.order >= 0) - 1, 0)
+    def cells(self) -> np.ndarray:
+        """The cell of each Gaussian in grid order (:func:`occupied_cells` of the padding)."""
+        n = int(np.count_nonzero(self.order >= 0))
+        return occupied_cells(self.padding, self.shape, n, self.order >= 0)
+
+    def cell_rows(self, cells: np.ndarray) -> np.ndarray:
+        """For each cell, the grid-order index it shows (``cells`` from :meth:`cells`): its own, or that
+        of the previous occupied cell in raster order for an empty cell (the first occupied one before any)."""
+        index = np.full(self.order.size, -1, dtype=np.int64)
+        index[cells] = np.arange(cells.size)
+        filled = np.maximum.accumulate(np.where(index >= 0, np.arange(index.size), -1))
+        return np.where(filled >= 0, index[np.maximum(filled, 0)], index[cells[np.argmin(cells)]])
 
     def mask_chunk(self) -> tuple[bytes, int]:
         """The occupancy bits, packed and deflated, and their count (for ``padding == "mask"``)."""
         mask = np.packbits(self.order >= 0)
         return zlib.compress(mask.tobytes(), 9), int(mask.size)
+
+
+#: The grid policy of set-coded positions: the order follows from them.
+GEOMETRY = "geometry"
+
+
+def occupied_cells(padding: str, shape: tuple[int, int], n: int, mask: np.ndarray | None = None) -> np.ndarray:
+    """The cells (row-major indices) holding the ``n`` Gaussians, in grid order.
+
+    ``tail``: the first ``n`` cells; ``mask``: the cells set in ``mask``, in raster order;
+    ``zorder``: the first ``n`` cells along the grid's 2-D Z-order curve.
+    """
+    if padding == "tail":
+        return np.arange(n)
+    if padding == "zorder":
+        from sorting.morton import grid_z_cells
+
+        return grid_z_cells(shape)[:n]
+    if mask is None:
+        raise BitstreamError("corrupt .gsc file: a masked grid needs its mask")
+    return np.flatnonzero(mask)
+
+
+def plan_positions_grid(cloud: GaussianCloud, bits: int, multiple: int) -> GridOrder:
+    """The grid order of set-coded positions: Morton order of the ``bits``-bit positions on the Z-order curve."""
+    import sorting
+    from sorting.morton import grid_z_cells
+
+    from gscodec_shac.codec.positions import set_order
+
+    quantizer = qz.Quantizer.fit(qz.log_transform(cloud.means), bits)
+    rows = set_order(quantizer.quantize(qz.log_transform(cloud.means)))
+    shape = sorting.grid_shape(cloud.num_gaussians, multiple=multiple, policy="pad")
+    order = np.full(shape[0] * shape[1], -1, dtype=np.int64)
+    order[grid_z_cells(shape)[: rows.size]] = rows
+    return GridOrder(shape, order, 0, GEOMETRY)
 
 
 def kept_rows(cloud: GaussianCloud, min_opacity: float) -> np.ndarray:
@@ -126,9 +174,9 @@ def planes(values: np.ndarray, cell_rows: np.ndarray, shape: tuple[int, int]) ->
     return np.ascontiguousarray(values[cell_rows].T.reshape(values.shape[1], *shape))
 
 
-def occupied(flat: np.ndarray, n: int, mask: np.ndarray | None) -> np.ndarray:
-    """(C, H*W) decoded planes -> (N, C) values of the occupied cells (the first ``n`` without a mask)."""
-    return (flat[:, :n] if mask is None else flat[:, mask]).T
+def occupied(flat: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """(C, H*W) decoded planes -> (N, C) values of the occupied ``cells`` (in grid order)."""
+    return flat[:, cells].T
 
 
 def unpack_mask(bits: bytes, n: int, cells: int) -> np.ndarray:

@@ -11,7 +11,7 @@ deep-merged over the defaults, then validated into a :class:`RatePoint`::
       bits: 10                                      # ... and its bit depth
       color: ycbcr                                  # rgb | ycbcr (SH colour triplets)
       attributes:                                   # per-attribute overrides
-        positions: {bits: 16, layout: split8}       # split8 | single (lossless only)
+        positions: {bits: 16, layout: split8}       # split8 | single | set (lossless only)
       sh: {stage: none}                             # SH stage and its parameters
       sort: {method: plas, policy: pad, multiple: 8, seed: 0, weights: {xyz: 1.0}}
       prune: {min_opacity: 0.0}                     # drop Gaussians below this opacity
@@ -26,6 +26,9 @@ two 8-bit planes (``split8``). ``sh_ac`` takes one QP or one per SH degree
 (1, 2, 3, ...): the ladder. ``sh_features`` (default: as ``sh_ac``) codes the
 output of a transforming stage (pca, lst); ``sh_labels`` (default: the codec and
 layout of ``positions``) codes the integer labels of the ``vq`` stage.
+Positions may instead be coded as a set (``layout: set``, :mod:`gscodec_shac.codec.positions`):
+the grid order then follows from the decoded positions (Morton order), so the ``sort``
+settings do not apply.
 Positions and labels are always lossless.
 
 References: ``"paper_table3:rp2"`` (a file shipped in
@@ -51,7 +54,7 @@ from gscodec_shac.yaml_file import read_yaml_file
 
 ATTRIBUTES = ("positions", "rotation", "scale", "opacity", "sh_dc", "sh_ac", "sh_features", "sh_labels")
 LOSSLESS_ATTRIBUTES = ("positions", "sh_labels")
-LAYOUTS = ("split8", "single")
+LAYOUTS = ("split8", "single", "set")
 COLORS = ("rgb", "ycbcr")
 SORT_METHODS = ("plas", "morton", "random", "none")
 SORT_POLICIES = ("pad", "drop")
@@ -120,6 +123,11 @@ class RatePoint:
     min_opacity: float = 0.0
     description: str = ""
 
+    @property
+    def positions_as_set(self) -> bool:
+        """Positions coded as a set, the grid order following from them (layout ``set``)."""
+        return self.attributes["positions"].layout == "set"
+
     def with_overrides(
         self,
         *,
@@ -143,6 +151,9 @@ class RatePoint:
             if stage not in STAGES:
                 raise RatePointError(f"unknown SH stage {stage!r}; known: {', '.join(STAGES.names())}")
             point = dataclasses.replace(point, sh_stage=stage, sh_params=base)
+        if sort_method is not None and point.positions_as_set:
+            raise RatePointError(f"{point.name} codes positions as a set: its grid order follows from the "
+                                 f"positions, so a sort method ({sort_method}) does not apply")
         if sort_method is not None or seed is not None:
             sort = point.sort
             if sort_method is not None:
@@ -269,6 +280,8 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
         qp = _qp(where, over["qp"] if "qp" in over else qps.get(name), qp_key, ladder=name in ("sh_ac", "sh_features"))
         default_layout = "split8" if name in LOSSLESS_ATTRIBUTES else "single"
         layout = where.choice(over.get("layout", default_layout), LAYOUTS, f"attributes.{name}.layout")
+        if layout == "set" and name != "positions":
+            raise where.error(f"attributes.{name}.layout", "only positions can be coded as a set")
         if name in LOSSLESS_ATTRIBUTES and qp is not None:
             raise where.error(qp_key, f"{name} are coded losslessly; remove the QP")
         _check_codec(where, spec_codec, qp, f"attributes.{name}.codec")
@@ -277,7 +290,8 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
         attributes["sh_features"] = attributes["sh_ac"]
     if "sh_labels" not in attributes:
         pos = attributes["positions"]
-        attributes["sh_labels"] = AttributeSpec(pos.codec, 16, None, dict(pos.options), pos.layout)
+        layout = "split8" if pos.layout == "set" else pos.layout
+        attributes["sh_labels"] = AttributeSpec(pos.codec, 16, None, dict(pos.options), layout)
 
     sh = raw.get("sh") or {}
     if not isinstance(sh, dict):
