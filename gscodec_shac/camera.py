@@ -355,6 +355,46 @@ def camera_on_sphere(
     return look_at(name, center + radius * direction, center, up_v, width, height, focal)
 
 
+def orbit_views(
+    points: np.ndarray,
+    n_views: int,
+    width: int,
+    height: int | None = None,
+    *,
+    up: Sequence[float] = (0.0, 0.0, 1.0),
+    elevations: Sequence[float] = (-10.0, 15.0, 40.0),
+    fov_y_deg: float = 45.0,
+    distance: float = 2.5,
+) -> list[Camera]:
+    """``n_views`` cameras on rings around a scene's ``points`` (N, 3), all looking at its centre.
+
+    Centre = median of the points; radius = ``distance`` x the median distance of the points
+    from it (robust to far outliers); the views are spread
+    round-robin over rings at the given elevations (degrees) with staggered azimuths; names
+    ``orbit_000`` ... in that order. Height defaults to 3/4 of the width.
+    """
+    if n_views < 1 or width < 1:
+        raise ValidationError(f"orbit views need n_views >= 1 and width >= 1, got {n_views}, {width}")
+    height = max(1, round(0.75 * width)) if height is None else int(height)
+    up_v = np.asarray(up, dtype=np.float64)
+    if up_v.shape != (3,) or np.linalg.norm(up_v) < 1e-12:
+        raise ValidationError(f"up must be a non-zero 3-vector, got {list(up)!r}")
+    basis = orbit_basis(up_v)
+    points = np.asarray(points, dtype=np.float64)
+    centre = np.median(points, axis=0)
+    radius = distance * max(float(np.median(np.linalg.norm(points - centre, axis=1))), 1e-6)
+    rings = len(elevations)
+    cameras = []
+    for i in range(n_views):
+        ring = i % rings
+        azimuth = 2.0 * math.pi * (i / n_views + ring / (2.0 * rings * max(1, n_views // rings)))
+        elevation = math.radians(elevations[ring])
+        cameras.append(
+            camera_on_sphere(f"orbit_{i:03d}", centre, radius, azimuth, elevation, basis, width, height, fov_y_deg)
+        )
+    return cameras
+
+
 def test_split(cameras: Iterable[Camera], every: int = 8) -> tuple[list[Camera], list[Camera]]:
     """``(train, test)``: test is every ``every``-th camera (i % every == 0) in sorted name order.
 

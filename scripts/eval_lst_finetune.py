@@ -54,7 +54,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from gscodec_shac.camera import Camera, look_at, test_split  # noqa: E402
+from gscodec_shac.camera import Camera, look_at, test_split, orbit_views  # noqa: E402
 from gscodec_shac.gaussians import GaussianCloud  # noqa: E402
 from gscodec_shac.io.cameras import load_cameras  # noqa: E402
 from gscodec_shac.io.ply import read_ply, write_ply  # noqa: E402
@@ -70,7 +70,6 @@ from gscodec_shac.train.finetune import (  # noqa: E402
     LstFinetuner,
     checkpoint_path_for,
     log_path_for,
-    orbit_views,
     torch_threads,
     view_schedule,
     write_log,
@@ -115,7 +114,7 @@ def load_scene(key: str, steps: int | None) -> Scene | None:
             print(f"skipping kacy: {path} not found", file=sys.stderr)
             return None
         cloud = read_ply(path)
-        train, test = test_split(orbit_views(cloud, 64, 200, up=(0.0, -1.0, 0.0)))
+        train, test = test_split(orbit_views(cloud.means, 64, 200, up=(0.0, -1.0, 0.0)))
         desc = (f"kacy_sh3_9k (real, N = {cloud.num_gaussians:,}; no cameras: 64 orbit views at 200x150 on rings at "
                 f"-10/15/40 deg, up -y, {len(train)} training / {len(test)} held-out; targets = original renders)")
         return Scene(key, desc, cloud, train, test, "original", steps or 2000)

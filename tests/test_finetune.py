@@ -150,9 +150,9 @@ def test_view_schedule_is_seeded_epochs_of_permutations():
 
 
 def test_orbit_views_surround_the_scene_and_look_at_its_centre(scene):
-    from gscodec_shac.train.finetune import orbit_views
+    from gscodec_shac.camera import orbit_views
 
-    views = orbit_views(scene.cloud, 9, 40)
+    views = orbit_views(scene.cloud.means, 9, 40)
     centre = np.median(scene.cloud.means.astype(np.float64), axis=0)
     assert [v.name for v in views] == [f"orbit_{i:03d}" for i in range(9)]
     assert all((v.width, v.height) == (40, 30) for v in views)

@@ -29,6 +29,7 @@ from tqdm.auto import tqdm
 
 import gscodec_shac
 from gscodec_shac.codec import quantize as qz
+from gscodec_shac.codec.allocation import waterfill_qps
 from gscodec_shac.codec.attributes import ATTRIBUTES, SH_FEATURES_TRANSFORM
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.grid.base import GridCodec, get_codec
@@ -149,7 +150,7 @@ class Encoder:
                 attributes[name] = self._code_values(name, attr.transform, values, rp.attributes[name], cell_rows,
                                                      grid.shape, attr.groups)
             if features is not None and features.shape[1]:
-                attributes["sh"] = self._code_sh(stage, features, cell_rows, grid.shape)
+                attributes["sh"], features = self._code_sh(stage, features, cell_rows, grid.shape)
         with self._timed("code"):
             self._run_jobs(stream)
 
@@ -207,19 +208,31 @@ class Encoder:
         return {"chunks": ["positions"], "channels": 3, "coding": "set", "transform": ATTRIBUTES["positions"].transform,
                 "quantizer": quantizer.to_json()}
 
-    def _code_sh(self, stage: ShStage, features: np.ndarray, cell_rows: np.ndarray, shape: tuple[int, int]) -> dict:
+    def _code_sh(
+        self, stage: ShStage, features: np.ndarray, cell_rows: np.ndarray, shape: tuple[int, int]
+    ) -> tuple[dict, np.ndarray]:
+        """Queue the SH features' chunks; returns the header entry and the features coded (water-filling may drop some)."""
         spec = self.rate_point.attributes[stage.rate_attribute]
         if stage.feature_kind == "labels":
             bits = int(stage.feature_bits)  # type: ignore[attr-defined]
             labels = np.rint(features).astype(np.int64)
             if labels.size and (labels.min() < 0 or labels.max() >= 1 << bits):
                 raise ValidationError(f"SH stage {stage.name!r} gave labels outside 0..2^{bits}-1")
-            return self._code_integers("sh", SH_FEATURES_TRANSFORM, labels.astype(np.uint16), bits, spec, cell_rows, shape)
+            entry = self._code_integers("sh", SH_FEATURES_TRANSFORM, labels.astype(np.uint16), bits, spec, cell_rows, shape)
+            return entry, features
         values = features
         if self.rate_point.color == "ycbcr" and stage.ycbcr_applies(features.shape[1]):
             values = qz.triplets_to_ycbcr(features)
-        qps = [spec.qp_for_degree(d) for d in stage.feature_degrees(features.shape[1])]
-        return self._code_values("sh", SH_FEATURES_TRANSFORM, values, spec, cell_rows, shape, None, qps)
+        if spec.allocation == "waterfill":
+            if stage.feature_kind != "components":
+                raise ValidationError(f"waterfill allocation needs a components stage such as pca, not {stage.name!r}")
+            qps = waterfill_qps(np.ptp(values, axis=0), stage.feature_weights(), int(spec.qp))
+            if len(qps) < features.shape[1]:
+                stage.keep_features(len(qps))
+                features = values = features[:, : len(qps)]
+        else:
+            qps = [spec.qp_for_degree(d) for d in stage.feature_degrees(features.shape[1])]
+        return self._code_values("sh", SH_FEATURES_TRANSFORM, values, spec, cell_rows, shape, None, qps), features
 
     def _code_values(
         self, name: str, transform: str, values: np.ndarray, spec: AttributeSpec,

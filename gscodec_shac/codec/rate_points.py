@@ -25,7 +25,12 @@ plane (``layout: single``, the default except for positions and labels) or
 two 8-bit planes (``split8``). ``sh_ac`` takes one QP or one per SH degree
 (1, 2, 3, ...): the ladder. ``sh_features`` (default: as ``sh_ac``) codes the
 output of a transforming stage (pca, lst); ``sh_labels`` (default: the codec and
-layout of ``positions``) codes the integer labels of the ``vq`` stage.
+layout of ``positions``) codes the integer labels of the ``vq`` stage. With
+``allocation: waterfill`` (``sh_ac`` / ``sh_features``, one base QP) every feature gets its
+own QP by reverse water-filling (:func:`gscodec_shac.codec.allocation.waterfill_qps`): the
+base QP goes to the feature with the widest weighted range, the others a QP that gives the
+same weighted error, and trailing features whose QP would exceed 51 are dropped (for
+SHAC-PCA this chooses the rank M).
 Positions may instead be coded as a set (``layout: set``, :mod:`gscodec_shac.codec.positions`):
 the grid order then follows from the decoded positions (Morton order), so the ``sort``
 settings do not apply.
@@ -63,7 +68,10 @@ QP_RANGE = (0, 51)
 
 _FILE_KEYS = {"description", "source", "defaults", "points"}
 _POINT_KEYS = {"description", "codec", "codec_options", "bits", "color", "qp", "attributes", "sh", "sort", "prune"}
-_ATTRIBUTE_KEYS = {"codec", "codec_options", "bits", "qp", "layout"}
+_ATTRIBUTE_KEYS = {"codec", "codec_options", "bits", "qp", "layout", "allocation"}
+#: How an SH attribute's features share out QPs: ``degree`` (the QP ladder by SH degree) or
+#: ``waterfill`` (reverse water-filling: one QP per feature from the stage's feature weights).
+ALLOCATIONS = ("degree", "waterfill")
 _SORT_KEYS = {"method", "policy", "multiple", "seed", "weights", "normalize", "schedule"}
 _PRUNE_KEYS = {"min_opacity"}
 _DEFAULT_WEIGHTS = {"xyz": 1.0, "scale": 1.0, "opacity": 1.0, "dc": 1.0, "rotation": 0.0}
@@ -78,6 +86,7 @@ class AttributeSpec:
     qp: int | tuple[int, ...] | None = None
     options: dict[str, Any] = field(default_factory=dict)
     layout: str = "single"
+    allocation: str = "degree"
 
     @property
     def lossless(self) -> bool:
@@ -91,7 +100,10 @@ class AttributeSpec:
 
     def to_json(self) -> dict[str, Any]:
         qp = list(self.qp) if isinstance(self.qp, tuple) else self.qp
-        return {"codec": self.codec, "bits": self.bits, "qp": qp, "options": dict(self.options), "layout": self.layout}
+        out = {"codec": self.codec, "bits": self.bits, "qp": qp, "options": dict(self.options), "layout": self.layout}
+        if self.allocation != "degree":
+            out["allocation"] = self.allocation
+        return out
 
 
 @dataclass(frozen=True)
@@ -280,12 +292,16 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
         qp = _qp(where, over["qp"] if "qp" in over else qps.get(name), qp_key, ladder=name in ("sh_ac", "sh_features"))
         default_layout = "split8" if name in LOSSLESS_ATTRIBUTES else "single"
         layout = where.choice(over.get("layout", default_layout), LAYOUTS, f"attributes.{name}.layout")
+        allocation = where.choice(over.get("allocation", "degree"), ALLOCATIONS, f"attributes.{name}.allocation")
+        if allocation == "waterfill" and (name not in ("sh_ac", "sh_features") or not isinstance(qp, int)):
+            raise where.error(f"attributes.{name}.allocation",
+                              "waterfill applies to sh_ac / sh_features with one base QP")
         if layout == "set" and name != "positions":
             raise where.error(f"attributes.{name}.layout", "only positions can be coded as a set")
         if name in LOSSLESS_ATTRIBUTES and qp is not None:
             raise where.error(qp_key, f"{name} are coded losslessly; remove the QP")
         _check_codec(where, spec_codec, qp, f"attributes.{name}.codec")
-        attributes[name] = AttributeSpec(spec_codec, spec_bits, qp, spec_options, layout)
+        attributes[name] = AttributeSpec(spec_codec, spec_bits, qp, spec_options, layout, allocation)
     if "sh_features" not in attributes:
         attributes["sh_features"] = attributes["sh_ac"]
     if "sh_labels" not in attributes:

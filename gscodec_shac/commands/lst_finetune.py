@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
         raise GscodecError(f"{args.images}: no such image folder")
 
     from gscodec_shac.atomic import write_atomic
-    from gscodec_shac.camera import test_split
+    from gscodec_shac.camera import orbit_views, test_split
     from gscodec_shac.io.cameras import load_cameras
     from gscodec_shac.io.ply import read_ply
     from gscodec_shac.shac.lst_torch import LSTConfig
@@ -108,7 +108,6 @@ def run(args: argparse.Namespace) -> int:
         LstFinetuner,
         checkpoint_path_for,
         log_path_for,
-        orbit_views,
         summary_path_for,
     )
 
@@ -124,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
         if args.targets == "images":
             raise GscodecError("--targets images needs --cameras with ground-truth images (orbit views have none)")
         width = args.width or round(320 * (args.scale or 1.0))
-        cameras = orbit_views(cloud, args.orbit, max(1, width), up=comma_floats(args.up, "--up"))
+        cameras = orbit_views(cloud.means, args.orbit, max(1, width), up=comma_floats(args.up, "--up"))
         targets = "original"
     train, held_out = (cameras, []) if args.all_views else test_split(cameras)
     if not train:

@@ -46,19 +46,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _orbit(cloud, views: int, up: list[float], width: int | None, scale: float | None) -> list:
-    import numpy as np
-
+    """One ring of ``views`` cameras 20 degrees up, around the median of the means."""
+    from gscodec_shac.camera import orbit_views
     from gscodec_shac.errors import GscodecError
-    from gscodec_shac.camera import orbit_cameras
 
     if views < 1:
         raise GscodecError(f"--orbit-views must be at least 1, got {views}")
-    center = np.median(cloud.means, axis=0)
-    extent = float(np.median(np.linalg.norm(cloud.means - center, axis=1)))  # robust to far-away outliers
-    w = width if width is not None else round(800 * (scale or 1.0))
-    w = max(1, w)
-    return orbit_cameras(center, 2.5 * max(extent, 1e-6), views, w, max(1, round(0.75 * w)), fov_y_deg=45.0,
-                         elevation_deg=20.0, up=up)
+    w = max(1, width if width is not None else round(800 * (scale or 1.0)))
+    return orbit_views(cloud.means, views, w, up=up, elevations=(20.0,))
 
 
 def _select(cameras: list, args: argparse.Namespace) -> list:

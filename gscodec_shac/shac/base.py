@@ -212,6 +212,19 @@ class ShStage(ABC):
         bounds = np.cumsum([3 * (2 * l + 1) for l in range(1, sh_index.MAX_SH_DEGREE + 2)])
         return [int(np.searchsorted(bounds, i, side="right")) + 1 for i in range(n_features)]
 
+    def feature_weights(self) -> np.ndarray | None:
+        """Squared error in the reconstructed [DC | AC] columns per unit squared error of each feature
+        (what :mod:`gscodec_shac.codec.allocation` water-fills over); None: all features alike."""
+        return None
+
+    def keep_features(self, count: int) -> None:
+        """Keep only the first ``count`` features (rate-point water-filling drops the weakest).
+
+        Only ``components`` stages, whose features come in decreasing importance, can.
+        """
+        if count != self.n_features:
+            raise ValidationError(f"SH stage {self.name!r} cannot drop features (keeps {self.n_features})")
+
     def ycbcr_applies(self, n_features: int) -> bool:
         """Whether a rate point's YCbCr colour transform applies to the features."""
         return self.feature_kind == "coefficients" and not self.uses_dc and n_features % 3 == 0

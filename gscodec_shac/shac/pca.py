@@ -222,6 +222,21 @@ class ShacPCA(ShStage):
         out += self.mean_.astype(dtype)
         return out
 
+    def feature_weights(self) -> np.ndarray:
+        """Unit error on component j moves the input columns by ``P_kj sigma_k`` (eq. 29): weight sum_k (P_kj sigma_k)^2."""
+        self._check_fitted()
+        return ((self.components_ * self.scale_[:, None]) ** 2).sum(axis=0)
+
+    def keep_features(self, count: int) -> None:
+        """Keep the first ``count`` components (the side information shrinks with them)."""
+        self._check_fitted()
+        if not 1 <= count <= self.n_components_:
+            raise ValidationError(f"SHAC-PCA can keep 1 to {self.n_components_} components, not {count}")
+        self.n_components_ = int(count)
+        self.components_ = self.components_[:, :count]
+        if self.component_channels_ is not None:
+            self.component_channels_ = self.component_channels_[:count]
+
     # ------------------------------------------------------------- sizes
     @property
     def n_features(self) -> int:

@@ -57,7 +57,7 @@ import torch
 
 from gscodec_shac import sh_index
 from gscodec_shac.atomic import write_atomic
-from gscodec_shac.camera import Camera, camera_on_sphere, orbit_basis
+from gscodec_shac.camera import Camera
 from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.shac.base import StageState
@@ -175,45 +175,6 @@ def view_schedule(n_views: int, steps: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     epochs = -(-steps // n_views)
     return np.concatenate([rng.permutation(n_views) for _ in range(epochs)])[:steps]
-
-
-def orbit_views(
-    cloud: GaussianCloud,
-    n_views: int,
-    width: int,
-    height: int | None = None,
-    *,
-    up: Sequence[float] = (0.0, 0.0, 1.0),
-    elevations: Sequence[float] = (-10.0, 15.0, 40.0),
-    fov_y_deg: float = 45.0,
-    distance: float = 2.5,
-) -> list[Camera]:
-    """``n_views`` cameras on rings around the scene, all looking at its centre.
-
-    Centre = median of the means; radius = ``distance`` x the median distance of the means
-    from it (robust to far outliers, as ``gscodec-shac render`` does); the views are spread
-    round-robin over rings at the given elevations (degrees) with staggered azimuths; names
-    ``orbit_000`` ... in that order. Height defaults to 3/4 of the width.
-    """
-    if n_views < 1 or width < 1:
-        raise ValidationError(f"orbit views need n_views >= 1 and width >= 1, got {n_views}, {width}")
-    height = max(1, round(0.75 * width)) if height is None else int(height)
-    up_v = np.asarray(up, dtype=np.float64)
-    if up_v.shape != (3,) or np.linalg.norm(up_v) < 1e-12:
-        raise ValidationError(f"up must be a non-zero 3-vector, got {list(up)!r}")
-    basis = orbit_basis(up_v)
-    centre = np.median(cloud.means.astype(np.float64), axis=0)
-    radius = distance * max(float(np.median(np.linalg.norm(cloud.means - centre, axis=1))), 1e-6)
-    rings = len(elevations)
-    cameras = []
-    for i in range(n_views):
-        ring = i % rings
-        azimuth = 2.0 * math.pi * (i / n_views + ring / (2.0 * rings * max(1, n_views // rings)))
-        elevation = math.radians(elevations[ring])
-        cameras.append(
-            camera_on_sphere(f"orbit_{i:03d}", centre, radius, azimuth, elevation, basis, width, height, fov_y_deg)
-        )
-    return cameras
 
 
 # ----------------------------------------------------------------------------- results

@@ -1,0 +1,43 @@
+"""Reverse water-filling of QPs over an SH stage's features (rate-point ``allocation: waterfill``).
+
+For independent features under one error budget, the classic rate-distortion answer
+(reverse water-filling) gives every feature the same error, ``theta``, and drops the
+features whose variance is below it. Our features are min/max quantised to ``b`` bits
+before the grid codec, so an HEVC step of ``Qstep(QP)`` sample units is an absolute step
+``Qstep(QP) * range_i / (2^b - 1)`` on feature ``i``; a unit error on feature ``i`` costs
+``weight_i`` squared AC units in the rendered colour (:meth:`ShStage.feature_weights`).
+Equal weighted steps, ``sqrt(weight_i) * range_i * Qstep(QP_i)`` constant, give
+
+    QP_i = QP_base + 6 log2( s_0 / s_i ),     s_i = sqrt(weight_i) * range_i,
+
+(``Qstep`` doubles every 6 QP), with ``QP_base`` on the feature of largest ``s``. The
+trailing features whose QP would exceed 51 (the last HEVC QP, where the step spans the
+whole range) carry nothing worth their bits and are dropped: for SHAC-PCA this picks the
+rank M jointly with the QPs, instead of one energy retention for the whole RD curve.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: The largest HEVC QP.
+MAX_QP = 51
+
+
+def waterfill_qps(ranges: np.ndarray, weights: np.ndarray | None, base_qp: int) -> list[int]:
+    """Per-feature QPs for the kept features (a prefix: trailing features above :data:`MAX_QP` are dropped).
+
+    ``ranges``: each feature's quantiser range (max - min); ``weights``: the rendered
+    error per unit feature error (None: all equal). At least one feature is kept.
+    """
+    ranges = np.asarray(ranges, dtype=np.float64)
+    weights = np.ones_like(ranges) if weights is None else np.asarray(weights, dtype=np.float64)
+    strength = np.sqrt(np.maximum(weights, 0.0)) * np.maximum(ranges, 0.0)
+    top = float(strength.max()) if strength.size else 0.0
+    if top <= 0:
+        return [int(base_qp)] * min(1, ranges.size)
+    with np.errstate(divide="ignore"):
+        offsets = 6.0 * np.log2(top / np.maximum(strength, top * 1e-12))
+    qps = np.rint(base_qp + offsets).astype(np.int64)
+    keep = int(np.flatnonzero(qps <= MAX_QP).max()) + 1 if np.any(qps <= MAX_QP) else 1
+    return [int(min(q, MAX_QP)) for q in qps[:keep]]
