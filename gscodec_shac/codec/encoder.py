@@ -14,6 +14,8 @@ encoder never tests a stage's name. The decoded cloud is in grid order.
 
 from __future__ import annotations
 
+import copy
+import hashlib
 import json
 import os
 import time
@@ -67,7 +69,10 @@ class Encoder:
     point's sorting; ``codec_options`` are merged into every lossy attribute's codec
     options (e.g. ``{"preset": "veryfast"}``). All overrides are applied here, once,
     and the resolved rate point is :attr:`rate_point` (recorded in the header).
-    ``workers`` threads code the chunks (the bytes do not depend on it). After
+    ``workers`` threads code the chunks (the bytes do not depend on it). ``chunk_cache``
+    (a dict shared by several encoders of the same cloud, e.g. the rate controller's trials)
+    keeps coded chunks by their planes and settings, so a chunk whose input did not change
+    is not coded again. After
     :meth:`encode`, ``order_`` holds the input row of each decoded Gaussian and
     ``timings_`` the seconds per step.
     """
@@ -84,6 +89,7 @@ class Encoder:
         fit_stage: bool = True,
         progress: bool = False,
         workers: int | None = None,
+        chunk_cache: dict | None = None,
     ) -> None:
         self._stage_instance = sh_stage if isinstance(sh_stage, ShStage) else None
         name = self._stage_instance.name if self._stage_instance is not None else sh_stage
@@ -97,6 +103,7 @@ class Encoder:
         self.timings_: dict[str, float] = {}
         self._codecs: dict[tuple, tuple[GridCodec, int]] = {}
         self._jobs: list[_Job] = []
+        self._chunk_cache = chunk_cache
 
     # ---------------------------------------------------------------- main
     def grid_order(self, cloud: GaussianCloud) -> GridOrder:
@@ -191,7 +198,8 @@ class Encoder:
     def _sh_features(self, cloud: GaussianCloud) -> tuple[ShStage | None, np.ndarray | None]:
         if cloud.sh_degree == 0:
             return None, None
-        stage = self._stage_instance or make_stage(self.rate_point.sh_stage, **self.rate_point.sh_params)
+        # a caller's stage is copied: water-filling may drop features of the copy
+        stage = copy.deepcopy(self._stage_instance) or make_stage(self.rate_point.sh_stage, **self.rate_point.sh_params)
         ac = cloud.ac_matrix()
         if stage.uses_dc:
             ac = np.concatenate([cloud.sh_dc, ac], axis=1)
@@ -282,12 +290,19 @@ class Encoder:
         self._jobs.append(_Job(chunk, codec, planes, bits, qp, meta))
 
     def _run_jobs(self, stream: Bitstream) -> None:
-        """Code the queued chunks in threads; chunks enter the stream in queue order."""
+        """Code the queued chunks in threads (or take them from the chunk cache); chunks enter the
+        stream in queue order."""
+        cache = self._chunk_cache
+        keys = [_cache_key(job) if cache is not None else None for job in self._jobs]
         with ThreadPoolExecutor(self.workers) as pool:
-            futures = [pool.submit(job.codec.encode, job.planes, job.bits, job.qp) for job in self._jobs]
-            for job, future in tqdm(list(zip(self._jobs, futures)), desc="encode", unit="chunk",
-                                    disable=not self.progress, leave=False):
-                stream.add_chunk(job.name, future.result(), **job.meta)
+            futures = [None if key in (cache or {}) else pool.submit(job.codec.encode, job.planes, job.bits, job.qp)
+                       for job, key in zip(self._jobs, keys)]
+            for job, key, future in tqdm(list(zip(self._jobs, keys, futures)), desc="encode", unit="chunk",
+                                         disable=not self.progress, leave=False):
+                data = cache[key] if future is None else future.result()
+                if cache is not None:
+                    cache[key] = data
+                stream.add_chunk(job.name, data, **job.meta)
         self._jobs = []
 
     def _codec(self, name: str, options: dict) -> tuple[GridCodec, int]:
@@ -296,3 +311,9 @@ class Encoder:
         if key not in self._codecs:
             self._codecs[key] = (get_codec(name, **options), len(self._codecs))
         return self._codecs[key]
+
+
+def _cache_key(job: _Job) -> tuple:
+    """What decides a chunk's bytes: its name, codec and settings, and its planes."""
+    digest = hashlib.sha1(np.ascontiguousarray(job.planes).view(np.uint8)).hexdigest()
+    return (job.name, json.dumps(job.codec.describe(), sort_keys=True), job.bits, job.qp, job.planes.shape, digest)

@@ -1,0 +1,523 @@
+"""Rate control (SHAC-auto): the best quality at a size, or the smallest file at a quality.
+
+The template rate point (``rate_points/shac_auto.yaml``) fixes the containers and the SH
+stage; for each scene and target the controller chooses six settings: the position bits
+(set coding) and the QPs of opacity, rotation, scale, DC and the water-filled SHAC-PCA
+features (whose base QP also picks the rank M, :mod:`.allocation`).
+
+The attributes are coded independently, so both the size and, for small errors, the
+rendered mean squared error are sums over attributes. The controller therefore models
+each attribute on its own:
+
+* **rate** ``R_a(x)`` and **attribute error** ``e_a(x)``: real encodes and decodes of a
+  *probe* (a sample of the cloud made of a few runs along its Morton order, so it keeps
+  the neighbourhoods the grid codecs exploit) at a handful of QPs, all attributes at once,
+  scaled to the whole cloud and interpolated in the log domain between probe QPs;
+  position bits are measured exactly on the whole cloud (set coding is cheap);
+* **render sensitivity** ``k_a``: the rendered MSE per unit attribute MSE, from renders of
+  the cloud with that attribute perturbed by noise of the size the codec leaves, on a few
+  views (the scene's cameras, else orbit views), against renders of the uncompressed cloud.
+
+The predicted rendered error is ``D = sum_a k_a e_a(x_a)`` (PSNR against the uncompressed
+model, images in [0, 1]). A Lagrangian search (per attribute ``min R_a + lambda D_a``)
+traces the lower convex hull of (size, D) and picks the point meeting the target; one real
+encode confirms it, and the controller corrects its rate model with what the encode
+measured and re-encodes until a size target is met (at most ``max_encodes`` encodes;
+unchanged chunks are taken from a cache). A size target is never exceeded; a target
+outside the reachable range raises :class:`TargetUnreachableError` naming the reachable
+limit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+import time
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from gscodec_shac.camera import Camera, orbit_views
+from gscodec_shac.codec import quantize as qz
+from gscodec_shac.codec.container import Bitstream
+from gscodec_shac.codec.decoder import Decoder
+from gscodec_shac.codec.encoder import Encoder
+from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode, set_order
+from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
+from gscodec_shac.errors import GscodecError, ValidationError
+from gscodec_shac.gaussians import GaussianCloud
+from gscodec_shac.shac.base import ShStage, make_stage
+
+#: The template rate point of SHAC-auto.
+TEMPLATE = "shac_auto:template"
+#: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
+QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
+#: QPs at which the probe is encoded; the models interpolate between them (and extrapolate).
+PROBE_QPS = (6, 18, 30, 42)
+#: Candidate position bits (set coding).
+POSITION_BITS = tuple(range(9, 17))
+#: A probe holds at least this many Gaussians (all of a smaller cloud) ...
+PROBE_MIN = 20_000
+#: ... or this share of the cloud, in this many runs along the Morton order.
+PROBE_SHARE = 1 / 16
+PROBE_RUNS = 4
+#: Views (and their width) the render sensitivities are measured on.
+CALIBRATION_VIEWS = 6
+CALIBRATION_WIDTH = 192
+#: A size target is met when the file is within this share under it.
+SIZE_TOLERANCE = 0.03
+
+
+class TargetUnreachableError(GscodecError):
+    """A rate-control target lies outside what the codec can reach on this scene."""
+
+
+@dataclass(frozen=True)
+class Target:
+    """``bytes`` (an upper bound) or ``psnr`` (a lower bound, dB against the uncompressed model)."""
+
+    kind: str
+    value: float
+
+    def describe(self) -> str:
+        return f"{self.value:,.0f} bytes" if self.kind == "bytes" else f"{self.value:.2f} dB PSNR"
+
+
+_SIZE = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*(b|bytes?|kb|kib|mb|mib|gb|gib)?\s*$", re.IGNORECASE)
+_UNITS = {"b": 1, "byte": 1, "bytes": 1, "kb": 1e3, "kib": 1024, "mb": 1e6, "mib": 1024**2, "gb": 1e9, "gib": 1024**3}
+
+
+def parse_size(text: str) -> float:
+    """``"2.5MB"`` -> 2.5e6 bytes (units b, kB, MB, GB and KiB, MiB, GiB; no unit: bytes)."""
+    match = _SIZE.match(str(text))
+    if not match:
+        raise ValidationError(f"size {text!r} is not a number with an optional unit (B, kB, MB, GB, KiB, MiB, GiB)")
+    value = float(match.group(1)) * _UNITS[(match.group(2) or "b").lower()]
+    if value <= 0:
+        raise ValidationError(f"size {text!r} must be positive")
+    return value
+
+
+def make_target(n_gaussians: int, size: str | None = None, bpg: float | None = None,
+                psnr: float | None = None) -> Target:
+    """The one target given: a size (``"2.5MB"``), bits per Gaussian, or a PSNR in dB."""
+    given = [v is not None for v in (size, bpg, psnr)]
+    if sum(given) != 1:
+        raise ValidationError("give exactly one of a target size, a target bits per Gaussian or a target PSNR")
+    if size is not None:
+        return Target("bytes", parse_size(size))
+    if bpg is not None:
+        if not (math.isfinite(bpg) and bpg > 0):
+            raise ValidationError(f"target bits per Gaussian must be positive, got {bpg}")
+        return Target("bytes", bpg * n_gaussians / 8.0)
+    if not (math.isfinite(psnr) and 0 < psnr < 200):
+        raise ValidationError(f"target PSNR must be a number of dB in (0, 200), got {psnr}")
+    return Target("psnr", float(psnr))
+
+
+# ------------------------------------------------------------------ models
+@dataclass
+class AttributeModel:
+    """Predicted bytes and rendered MSE of one attribute at each of its ``choices``."""
+
+    name: str
+    choices: np.ndarray
+    bytes: np.ndarray
+    mse: np.ndarray
+
+    def best(self, lam: float) -> int:
+        """Index of the choice minimising ``bytes + lam * mse``."""
+        return int(np.argmin(self.bytes + lam * self.mse))
+
+
+@dataclass
+class Plan:
+    """The chosen settings, what the models predict for them and the rate point that codes them."""
+
+    settings: dict[str, int]
+    predicted_bytes: float
+    predicted_mse: float
+    rate_point: RatePoint
+
+    @property
+    def predicted_psnr(self) -> float:
+        return _psnr(self.predicted_mse)
+
+
+@dataclass
+class Outcome:
+    """A rate-controlled encode: the stream, its plan and what the controller measured."""
+
+    stream: Bitstream
+    plan: Plan
+    target: Target
+    encodes: int
+    seconds: dict[str, float] = field(default_factory=dict)
+    measured_psnr: float | None = None
+
+    def summary(self) -> dict[str, Any]:
+        """What ``encode --json`` and the header report about the choice."""
+        out = {
+            "target": {"kind": self.target.kind, "value": self.target.value},
+            "settings": dict(self.plan.settings),
+            "predicted_bytes": round(self.plan.predicted_bytes),
+            "predicted_psnr": round(self.plan.predicted_psnr, 3),
+            "encodes": self.encodes,
+            "seconds": {k: round(v, 3) for k, v in self.seconds.items()},
+        }
+        if self.measured_psnr is not None:
+            out["measured_psnr"] = round(self.measured_psnr, 3)
+        return out
+
+
+# -------------------------------------------------------------- controller
+class RateController:
+    """Choose the settings of ``template`` that meet a target on ``cloud`` (see module docstring).
+
+    ``views``: cameras to judge quality from (default: orbit views around the cloud, with
+    ``up`` as the world up axis). ``workers``/``progress`` as for :class:`Encoder`.
+    Call :meth:`fit` once, then :meth:`encode` (or :meth:`plan`) for any number of targets.
+    """
+
+    def __init__(
+        self,
+        cloud: GaussianCloud,
+        template: str | RatePoint = TEMPLATE,
+        views: Sequence[Camera] | None = None,
+        *,
+        up: Sequence[float] = (0.0, 0.0, 1.0),
+        codec_options: dict[str, Any] | None = None,
+        workers: int | None = None,
+        progress: bool = False,
+        max_encodes: int = 4,
+    ) -> None:
+        point = load_rate_point(template).with_overrides(codec_options=codec_options)
+        if not point.positions_as_set or point.attributes["sh_features"].allocation != "waterfill":
+            raise ValidationError(f"rate control needs a template with set-coded positions and water-filled SH "
+                                  f"features (like {TEMPLATE}); {point.name} has not")
+        if cloud.num_gaussians < 2:
+            raise ValidationError("rate control needs at least 2 Gaussians")
+        self.cloud = cloud
+        self.template = point
+        self.views = list(views) if views else orbit_views(cloud.means, CALIBRATION_VIEWS, CALIBRATION_WIDTH, up=up)
+        self.views = _calibration_views(self.views)
+        self.workers = workers
+        self.progress = progress
+        self.max_encodes = max_encodes
+        self.models_: dict[str, AttributeModel] = {}
+        self.overhead_: float = 0.0
+        self.stage_: ShStage | None = None
+        self.seconds_: dict[str, float] = {}
+        self._cache: dict = {}
+        self._references: list[np.ndarray] = []
+
+    # -------------------------------------------------------------- fit
+    def fit(self) -> "RateController":
+        """Measure the per-attribute models (probe encodes, position bits, render sensitivities)."""
+        from gscodec_shac.render import Renderer
+
+        tic = time.perf_counter()
+        cloud = self.cloud
+        if cloud.sh_degree > 0:
+            stage = make_stage(self.template.sh_stage, **self.template.sh_params)
+            ac = cloud.ac_matrix()
+            self.stage_ = stage.fit(np.concatenate([cloud.sh_dc, ac], axis=1) if stage.uses_dc else ac)
+        self._references = [Renderer(cloud).render(view).image for view in self.views]
+        rates, errors, overhead = self._probe()
+        self.seconds_["probe"] = time.perf_counter() - tic
+        tic = time.perf_counter()
+        sensitivity = self._sensitivities(errors)
+        self.seconds_["calibrate"] = time.perf_counter() - tic
+        grid = np.arange(0, 52)
+        for name in rates:
+            self.models_[name] = AttributeModel(
+                name, grid, _interpolate_log(PROBE_QPS, rates[name], grid),
+                sensitivity[name] * _interpolate_log(PROBE_QPS, errors[name], grid))
+        self.models_["positions"] = self._position_model(sensitivity["positions"])
+        self.overhead_ = overhead
+        return self
+
+    def _probe(self) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
+        """Per attribute, bytes (scaled to the whole cloud) and attribute MSE at each probe QP."""
+        probe = _probe_sample(self.cloud)
+        scale = self.cloud.num_gaussians / probe.num_gaussians
+        names = [a for a in QP_ATTRIBUTES if a != "sh" or self.stage_ is not None]
+        rates = {a: np.zeros(len(PROBE_QPS)) for a in names}
+        errors = {a: np.zeros(len(PROBE_QPS)) for a in names}
+        overhead = 0.0
+        for i, qp in enumerate(PROBE_QPS):
+            point = self._rate_point({a: qp for a in names} | {"positions": 16})
+            encoder = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers)
+            stream = encoder.encode(probe)
+            decoded = Decoder(workers=self.workers).decode(stream.to_bytes())
+            source = probe.select(encoder.order_)
+            sizes = stream.attribute_sizes()
+            for a in names:
+                rates[a][i] = scale * sizes.get(a, 0)
+                errors[a][i] = _attribute_mse(a, source, decoded, point.color == "ycbcr")
+            overhead = max(overhead, sizes.get("header", 0) + sizes.get("sh_state", 0))
+        return rates, errors, overhead
+
+    def _sensitivities(self, errors: dict[str, np.ndarray]) -> dict[str, float]:
+        """Rendered MSE per unit attribute MSE: renders with each attribute perturbed by noise."""
+        rng = np.random.default_rng(0)
+        middle = PROBE_QPS.index(30)
+        out = {}
+        for name, mse in errors.items():
+            sigma = math.sqrt(max(float(mse[middle]), 1e-12))
+            out[name] = self._rendered_mse(_perturbed(self.cloud, name, sigma, rng)) / sigma**2
+        bits = 12
+        moved = _quantised_positions(self.cloud, bits)
+        step_mse = _position_step_mse(self.cloud, bits)
+        out["positions"] = self._rendered_mse(moved) / step_mse
+        return out
+
+    def _position_model(self, sensitivity: float) -> AttributeModel:
+        """Exact set-coding bytes per bit depth; rendered MSE from the quantisation step."""
+        values = qz.log_transform(self.cloud.means)
+        sizes, mses = [], []
+        for bits in POSITION_BITS:
+            quantizer = qz.Quantizer.fit(values, bits)
+            codes = np.sort(morton_encode(quantizer.quantize(values)))
+            sizes.append(len(encode_sorted_codes(codes)))
+            mses.append(sensitivity * _position_step_mse(self.cloud, bits))
+        return AttributeModel("positions", np.array(POSITION_BITS), np.array(sizes, float), np.array(mses))
+
+    def _rendered_mse(self, cloud: GaussianCloud) -> float:
+        from gscodec_shac.render import Renderer
+
+        renderer = Renderer(cloud)
+        return float(np.mean([np.mean((renderer.render(v).image - ref) ** 2)
+                              for v, ref in zip(self.views, self._references)]))
+
+    # ------------------------------------------------------------- plan
+    def plan(self, target: Target, rate_fix: float = 1.0, error_fix: float = 1.0) -> Plan:
+        """The settings the models pick for ``target`` (``*_fix``: measured / predicted bytes and MSE)."""
+        if not self.models_:
+            raise ValidationError("call fit() before plan()")
+        hull = self._hull(rate_fix, error_fix)
+        if target.kind == "bytes":
+            feasible = [p for p in hull if p.predicted_bytes <= target.value]
+            if not feasible:
+                smallest = min(p.predicted_bytes for p in hull)
+                raise TargetUnreachableError(
+                    f"target {target.describe()} is below the smallest file this scene can be coded into "
+                    f"(about {smallest:,.0f} bytes, {8 * smallest / self.cloud.num_gaussians:.1f} bits/Gaussian)")
+            return min(feasible, key=lambda p: (p.predicted_mse, p.predicted_bytes))
+        wanted = 10.0 ** (-target.value / 10.0)
+        feasible = [p for p in hull if p.predicted_mse <= wanted]
+        if not feasible:
+            best = max(p.predicted_psnr for p in hull)
+            raise TargetUnreachableError(
+                f"target {target.describe()} is above the best quality this codec reaches on this scene "
+                f"(about {best:.2f} dB against the uncompressed model)")
+        return min(feasible, key=lambda p: (p.predicted_bytes, p.predicted_mse))
+
+    def _hull(self, rate_fix: float, error_fix: float) -> list[Plan]:
+        """Plans along the lower convex hull of (bytes, rendered MSE): one per Lagrange multiplier."""
+        plans: dict[tuple, Plan] = {}
+        for lam in np.geomspace(1e-3, 1e15, 400):
+            settings = {name: int(m.choices[m.best(lam)]) for name, m in self.models_.items()}
+            key = tuple(sorted(settings.items()))
+            if key not in plans:
+                plans[key] = self._predict(settings, rate_fix, error_fix)
+        return list(plans.values())
+
+    def _predict(self, settings: dict[str, int], rate_fix: float = 1.0, error_fix: float = 1.0) -> Plan:
+        size = self.overhead_ + sum(m.bytes[np.searchsorted(m.choices, settings[n])] for n, m in self.models_.items())
+        mse = sum(m.mse[np.searchsorted(m.choices, settings[n])] for n, m in self.models_.items())
+        return Plan(settings, size * rate_fix, mse * error_fix, self._rate_point(settings))
+
+    def _rate_point(self, settings: dict[str, int]) -> RatePoint:
+        """The template with ``settings`` (position bits and QPs) filled in."""
+        point = self.template
+        attributes = dict(point.attributes)
+        for name, value in settings.items():
+            key = "sh_features" if name == "sh" else name
+            field_name = "bits" if name == "positions" else "qp"
+            attributes[key] = dataclasses.replace(attributes[key], **{field_name: int(value)})
+        return dataclasses.replace(point, attributes=attributes, name=f"{point.name}+auto")
+
+    # ----------------------------------------------------------- encode
+    def encode(self, target: Target) -> Outcome:
+        """Plan, encode, correct and re-encode until the target is met (see module docstring).
+
+        After the first encode the position bits stay fixed (changing them re-sorts the grid, so
+        no coded chunk could be reused); the QPs move by single steps, the cheapest error per
+        byte first, with the rate and error models scaled by what the last encode measured.
+        """
+        if not self.models_:
+            self.fit()
+        tic = time.perf_counter()
+        rate_fix, error_fix = 1.0, 1.0  # measured / predicted bytes and rendered MSE
+        plan: Plan | None = self.plan(target)
+        tried: set[tuple] = set()
+        best: tuple[Bitstream, Plan, float | None] | None = None
+        encodes = 0
+        while plan is not None and encodes < self.max_encodes and _key(plan) not in tried:
+            tried.add(_key(plan))
+            stream = self._encode(plan)
+            encodes += 1
+            size = stream.total_bytes()
+            rate_fix *= size / plan.predicted_bytes
+            if target.kind == "bytes":
+                if size <= target.value and (best is None or size > best[0].total_bytes()):
+                    best = (stream, plan, None)
+                if (1 - SIZE_TOLERANCE) * target.value <= size <= target.value:
+                    break
+                plan = self._adjust(plan, rate_fix, error_fix, limit=target.value * (1 - SIZE_TOLERANCE / 2))
+            else:
+                measured = self.measured_psnr(stream)
+                error_fix *= 10 ** ((plan.predicted_psnr - measured) / 10)
+                if measured >= target.value and (best is None or size < best[0].total_bytes()):
+                    best = (stream, plan, measured)
+                plan = self._adjust(plan, rate_fix, error_fix, max_mse=10 ** (-target.value / 10))
+        self.seconds_["encode"] = time.perf_counter() - tic
+        if best is None:
+            raise TargetUnreachableError(f"no encode met {target.describe()} in {encodes} tries")
+        stream, plan, measured = best
+        return Outcome(stream, plan, target, encodes, dict(self.seconds_), measured)
+
+    def _encode(self, plan: Plan) -> Bitstream:
+        encoder = Encoder(plan.rate_point, sh_stage=self.stage_, fit_stage=False, workers=self.workers,
+                          progress=self.progress, chunk_cache=self._cache)
+        return encoder.encode(self.cloud)
+
+    def _adjust(self, plan: Plan, rate_fix: float, error_fix: float, *, limit: float = math.inf,
+                max_mse: float = math.inf) -> Plan | None:
+        """The QPs moved step by step (position bits fixed) until the corrected prediction meets the
+        target: ``limit`` bytes as closely as possible from below, or ``max_mse`` at the fewest bytes."""
+        current = self._predict(plan.settings, rate_fix, error_fix)
+        while current.predicted_bytes > limit or current.predicted_mse > max_mse:  # too big or too poor
+            cheaper = current.predicted_bytes > limit
+            step = self._step(current, rate_fix, error_fix, cheaper=cheaper)
+            if step is None:
+                return None
+            current = step
+        while True:  # spend what is left, or save what the quality allows
+            spend = math.isfinite(limit)
+            step = self._step(current, rate_fix, error_fix, cheaper=not spend)
+            if step is None or step.predicted_bytes > limit or step.predicted_mse > max_mse:
+                return current
+            current = step
+
+    def _step(self, plan: Plan, rate_fix: float, error_fix: float, *, cheaper: bool) -> Plan | None:
+        """One QP step of one attribute: the least error added per byte saved (``cheaper``), or the
+        most error removed per byte spent."""
+        moves = []
+        for name, model in self.models_.items():
+            if name == "positions":
+                continue
+            i = int(np.searchsorted(model.choices, plan.settings[name]))
+            j = i + (1 if cheaper else -1)  # a higher QP costs fewer bytes
+            if not 0 <= j < model.choices.size:
+                continue
+            d_bytes, d_mse = model.bytes[j] - model.bytes[i], model.mse[j] - model.mse[i]
+            if d_bytes != 0 and (d_bytes < 0) == cheaper:
+                moves.append((d_mse / abs(d_bytes), name, int(model.choices[j])))
+        if not moves:
+            return None
+        _, name, value = min(moves)
+        return self._predict({**plan.settings, name: value}, rate_fix, error_fix)
+
+    def measured_psnr(self, stream: Bitstream) -> float:
+        """PSNR of the decoded stream against the uncompressed model on the controller's views."""
+        decoded = Decoder(workers=self.workers).decode(stream.to_bytes())
+        return _psnr(self._rendered_mse(decoded))
+
+
+# ------------------------------------------------------------------ helpers
+def _key(plan: Plan) -> tuple:
+    return tuple(sorted(plan.settings.items()))
+
+
+def _psnr(mse: float) -> float:
+    return 10.0 * math.log10(1.0 / max(mse, 1e-20))
+
+
+def _calibration_views(views: list[Camera]) -> list[Camera]:
+    """At most :data:`CALIBRATION_VIEWS` views, evenly spread, at most :data:`CALIBRATION_WIDTH` wide."""
+    ordered = sorted(views, key=lambda c: c.name)
+    picked = [ordered[i] for i in np.linspace(0, len(ordered) - 1, min(CALIBRATION_VIEWS, len(ordered))).round().astype(int)]
+    out = []
+    for view in picked:
+        if view.width > CALIBRATION_WIDTH:
+            height = max(1, round(view.height * CALIBRATION_WIDTH / view.width))
+            view = view.resized(CALIBRATION_WIDTH, height)
+        out.append(view)
+    return out
+
+
+def _probe_sample(cloud: GaussianCloud) -> GaussianCloud:
+    """A few runs of the cloud along its Morton order (all of a small cloud)."""
+    n = cloud.num_gaussians
+    size = min(n, max(PROBE_MIN, int(n * PROBE_SHARE)))
+    if size == n:
+        return cloud
+    values = qz.log_transform(cloud.means)
+    order = set_order(qz.Quantizer.fit(values, 16).quantize(values))
+    run = size // PROBE_RUNS
+    starts = np.linspace(0, n - run, PROBE_RUNS).round().astype(np.int64)
+    rows = np.concatenate([order[s : s + run] for s in starts])
+    return cloud.select(np.sort(rows))
+
+
+def _interpolate_log(xs: Sequence[float], ys: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Piecewise-linear in log(y) (y floored at a tiny value), extended along the end segments."""
+    xs = np.asarray(xs, dtype=np.float64)
+    logs = np.log(np.maximum(np.asarray(ys, dtype=np.float64), 1e-12))
+    out = np.interp(grid, xs, logs)
+    low, high = grid < xs[0], grid > xs[-1]
+    out[low] = logs[0] + (grid[low] - xs[0]) * (logs[1] - logs[0]) / (xs[1] - xs[0])
+    out[high] = logs[-1] + (grid[high] - xs[-1]) * (logs[-1] - logs[-2]) / (xs[-1] - xs[-2])
+    return np.exp(out)
+
+
+def _attribute_mse(name: str, source: GaussianCloud, decoded: GaussianCloud, ycbcr: bool) -> float:
+    """Mean squared error of one attribute in the domain it is coded in."""
+    if name == "opacity":
+        a, b = source.opacities, decoded.opacities
+    elif name == "scale":
+        a, b = source.scales, decoded.scales
+    elif name == "rotation":
+        a, b = qz.canonical_quaternions(source.quats), decoded.quats
+    elif name == "sh_dc":
+        a, b = (qz.triplets_to_ycbcr(source.sh_dc), qz.triplets_to_ycbcr(decoded.sh_dc)) if ycbcr \
+            else (source.sh_dc, decoded.sh_dc)
+    else:
+        a, b = source.ac_matrix(), decoded.ac_matrix()
+    return float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
+
+
+def _perturbed(cloud: GaussianCloud, name: str, sigma: float, rng: np.random.Generator) -> GaussianCloud:
+    """``cloud`` with Gaussian noise of std ``sigma`` on one attribute, in its coded domain."""
+    def noise(shape: tuple[int, ...]) -> np.ndarray:
+        return rng.normal(0.0, sigma, size=shape)
+
+    if name == "opacity":
+        return cloud.replace(opacities=cloud.opacities + noise(cloud.opacities.shape))
+    if name == "scale":
+        return cloud.replace(scales=cloud.scales + noise(cloud.scales.shape))
+    if name == "rotation":
+        quats = qz.canonical_quaternions(cloud.quats) + noise(cloud.quats.shape)
+        return cloud.replace(quats=quats / np.maximum(np.linalg.norm(quats, axis=1, keepdims=True), 1e-12))
+    if name == "sh_dc":
+        ycc = qz.triplets_to_ycbcr(cloud.sh_dc) + noise(cloud.sh_dc.shape)
+        return cloud.replace(sh_dc=qz.triplets_from_ycbcr(ycc))
+    ac = cloud.ac_matrix()
+    return cloud.with_ac_matrix(ac + noise(ac.shape))
+
+
+def _quantised_positions(cloud: GaussianCloud, bits: int) -> GaussianCloud:
+    values = qz.log_transform(cloud.means)
+    quantizer = qz.Quantizer.fit(values, bits)
+    return cloud.replace(means=qz.inverse_log_transform(quantizer.dequantize(quantizer.quantize(values))))
+
+
+def _position_step_mse(cloud: GaussianCloud, bits: int) -> float:
+    """Mean squared quantisation error of the log-positions at ``bits`` bits (uniform: step^2 / 12)."""
+    values = qz.log_transform(cloud.means)
+    steps = np.ptp(values, axis=0) / ((1 << bits) - 1)
+    return float(np.mean(steps**2) / 12.0)
