@@ -10,6 +10,7 @@ from typing import Any
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.decoder import Decoder
 from gscodec_shac.codec.encoder import Encoder
+from gscodec_shac.codec.rate_control import TEMPLATE, RateController, Target, make_target
 from gscodec_shac.codec.rate_points import RatePoint
 from gscodec_shac.errors import GscodecError
 
@@ -54,6 +55,52 @@ def encode_file(
         "seconds": time.perf_counter() - tic,
         "timings": encoder.timings_,
         "sizes": stream.attribute_sizes(),
+    }
+
+
+def encode_file_to_target(
+    in_ply: str | os.PathLike,
+    out_gsc: str | os.PathLike,
+    target: Target | None = None,
+    *,
+    size: str | None = None,
+    bpg: float | None = None,
+    psnr: float | None = None,
+    template: str | RatePoint = TEMPLATE,
+    cameras: str | os.PathLike | None = None,
+    up: tuple[float, float, float] = (0.0, 0.0, 1.0),
+    preset: str | None = None,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """PLY -> ``.gsc`` at a target (:mod:`.rate_control`): a size (``"2.5MB"``), bits per Gaussian or
+    PSNR against the uncompressed model on ``cameras`` (any camera file; default: orbit views).
+
+    Nothing is written when the target cannot be reached (:class:`TargetUnreachableError`).
+    """
+    from gscodec_shac.io.cameras import load_cameras
+    from gscodec_shac.io.ply import read_ply
+
+    tic = time.perf_counter()
+    _check_output_dir(out_gsc)
+    cloud = read_ply(in_ply)
+    target = target or make_target(cloud.num_gaussians, size=size, bpg=bpg, psnr=psnr)
+    views = load_cameras(cameras) if cameras is not None else None
+    controller = RateController(cloud, template, views, up=up, progress=progress,
+                                codec_options={"preset": preset} if preset else None)
+    outcome = controller.encode(target)
+    written = outcome.stream.write(out_gsc)
+    return {
+        "input": str(in_ply),
+        "output": str(out_gsc),
+        "rate_point": outcome.plan.rate_point.name,
+        "sh_stage": outcome.plan.rate_point.sh_stage,
+        "input_gaussians": cloud.num_gaussians,
+        "num_gaussians": outcome.stream.header["num_gaussians"],
+        "bytes": written,
+        "bits_per_gaussian": 8.0 * written / cloud.num_gaussians,
+        "seconds": time.perf_counter() - tic,
+        "rate_control": outcome.summary(),
+        "sizes": outcome.stream.attribute_sizes(),
     }
 
 

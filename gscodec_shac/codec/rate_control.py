@@ -191,7 +191,7 @@ class RateController:
         codec_options: dict[str, Any] | None = None,
         workers: int | None = None,
         progress: bool = False,
-        max_encodes: int = 4,
+        max_encodes: int = 6,
     ) -> None:
         point = load_rate_point(template).with_overrides(codec_options=codec_options)
         if not point.positions_as_set or point.attributes["sh_features"].allocation != "waterfill":
@@ -212,6 +212,8 @@ class RateController:
         self.seconds_: dict[str, float] = {}
         self._cache: dict = {}
         self._references: list[np.ndarray] = []
+        self._exact: dict[str, dict[int, float]] = {}
+        self._error_fix = 1.0
 
     # -------------------------------------------------------------- fit
     def fit(self) -> "RateController":
@@ -255,9 +257,9 @@ class RateController:
             source = probe.select(encoder.order_)
             sizes = stream.attribute_sizes()
             for a in names:
-                rates[a][i] = scale * sizes.get(a, 0)
+                rates[a][i] = scale * sizes.get(a, 0) + (sizes.get("sh_state", 0) if a == "sh" else 0)
                 errors[a][i] = _attribute_mse(a, source, decoded, point.color == "ycbcr")
-            overhead = max(overhead, sizes.get("header", 0) + sizes.get("sh_state", 0))
+            overhead = max(overhead, sizes.get("header", 0))
         return rates, errors, overhead
 
     def _sensitivities(self, errors: dict[str, np.ndarray]) -> dict[str, float]:
@@ -293,11 +295,11 @@ class RateController:
                               for v, ref in zip(self.views, self._references)]))
 
     # ------------------------------------------------------------- plan
-    def plan(self, target: Target, rate_fix: float = 1.0, error_fix: float = 1.0) -> Plan:
-        """The settings the models pick for ``target`` (``*_fix``: measured / predicted bytes and MSE)."""
+    def plan(self, target: Target) -> Plan:
+        """The settings the models pick for ``target`` (models corrected by the last encode's measurements)."""
         if not self.models_:
             raise ValidationError("call fit() before plan()")
-        hull = self._hull(rate_fix, error_fix)
+        hull = self._hull()
         if target.kind == "bytes":
             feasible = [p for p in hull if p.predicted_bytes <= target.value]
             if not feasible:
@@ -315,20 +317,49 @@ class RateController:
                 f"(about {best:.2f} dB against the uncompressed model)")
         return min(feasible, key=lambda p: (p.predicted_bytes, p.predicted_mse))
 
-    def _hull(self, rate_fix: float, error_fix: float) -> list[Plan]:
+    def _hull(self) -> list[Plan]:
         """Plans along the lower convex hull of (bytes, rendered MSE): one per Lagrange multiplier."""
         plans: dict[tuple, Plan] = {}
         for lam in np.geomspace(1e-3, 1e15, 400):
             settings = {name: int(m.choices[m.best(lam)]) for name, m in self.models_.items()}
             key = tuple(sorted(settings.items()))
             if key not in plans:
-                plans[key] = self._predict(settings, rate_fix, error_fix)
+                plans[key] = self._predict(settings)
         return list(plans.values())
 
-    def _predict(self, settings: dict[str, int], rate_fix: float = 1.0, error_fix: float = 1.0) -> Plan:
-        size = self.overhead_ + sum(m.bytes[np.searchsorted(m.choices, settings[n])] for n, m in self.models_.items())
+    def _predict(self, settings: dict[str, int]) -> Plan:
+        """Bytes and rendered MSE the models predict for ``settings``, corrected by the encodes so far."""
+        size = self._overhead_bytes() + sum(self._bytes(name, settings[name]) for name in self.models_)
         mse = sum(m.mse[np.searchsorted(m.choices, settings[n])] for n, m in self.models_.items())
-        return Plan(settings, size * rate_fix, mse * error_fix, self._rate_point(settings))
+        return Plan(settings, size, mse * self._error_fix, self._rate_point(settings))
+
+    def _bytes(self, name: str, choice: int) -> float:
+        """One attribute's bytes at ``choice``: measured when an encode coded it so (the bytes of a chunk
+        depend only on its planes and settings), else the model scaled by the measured/modelled ratio
+        of the nearest measured choices (interpolated in the log domain)."""
+        model = self.models_[name]
+        modelled = model.bytes[np.searchsorted(model.choices, choice)]
+        exact = self._exact.get(name, {})
+        if choice in exact:
+            return exact[choice]
+        if not exact:
+            return modelled
+        known = sorted(exact)
+        ratios = [np.log(exact[k] / max(model.bytes[np.searchsorted(model.choices, k)], 1e-9)) for k in known]
+        return modelled * float(np.exp(np.interp(choice, known, ratios)))
+
+    def _overhead_bytes(self) -> float:
+        return self._exact.get("overhead", {}).get(0, self.overhead_)
+
+    def _learn(self, plan: Plan, stream: Bitstream) -> None:
+        """Remember what each attribute of ``plan``'s encode cost (the positions fix the grid: their
+        setting is the same for every later plan of this target)."""
+        sizes = _model_sizes(stream)
+        for name in self.models_:
+            if sizes.get(name, 0) > 0:
+                self._exact.setdefault(name, {})[plan.settings[name]] = float(sizes[name])
+        coded = sum(sizes.get(name, 0) for name in self.models_)
+        self._exact["overhead"] = {0: float(stream.total_bytes() - coded)}
 
     def _rate_point(self, settings: dict[str, int]) -> RatePoint:
         """The template with ``settings`` (position bits and QPs) filled in."""
@@ -351,61 +382,67 @@ class RateController:
         if not self.models_:
             self.fit()
         tic = time.perf_counter()
-        rate_fix, error_fix = 1.0, 1.0  # measured / predicted bytes and rendered MSE
+        self._exact, self._error_fix = {}, 1.0  # bytes measured per attribute and setting; measured / predicted MSE
         plan: Plan | None = self.plan(target)
         tried: set[tuple] = set()
         best: tuple[Bitstream, Plan, float | None] | None = None
         encodes = 0
         while plan is not None and encodes < self.max_encodes and _key(plan) not in tried:
             tried.add(_key(plan))
-            stream = self._encode(plan)
+            stream = self._encode(plan, target)
             encodes += 1
             size = stream.total_bytes()
-            rate_fix *= size / plan.predicted_bytes
+            self._learn(plan, stream)
             if target.kind == "bytes":
                 if size <= target.value and (best is None or size > best[0].total_bytes()):
                     best = (stream, plan, None)
                 if (1 - SIZE_TOLERANCE) * target.value <= size <= target.value:
                     break
-                plan = self._adjust(plan, rate_fix, error_fix, limit=target.value * (1 - SIZE_TOLERANCE / 2))
+                plan = self._adjust(plan, limit=target.value * (1 - SIZE_TOLERANCE / 2))
             else:
                 measured = self.measured_psnr(stream)
-                error_fix *= 10 ** ((plan.predicted_psnr - measured) / 10)
+                self._error_fix *= 10 ** ((plan.predicted_psnr - measured) / 10)
                 if measured >= target.value and (best is None or size < best[0].total_bytes()):
                     best = (stream, plan, measured)
-                plan = self._adjust(plan, rate_fix, error_fix, max_mse=10 ** (-target.value / 10))
+                plan = self._adjust(plan, max_mse=10 ** (-target.value / 10))
         self.seconds_["encode"] = time.perf_counter() - tic
         if best is None:
             raise TargetUnreachableError(f"no encode met {target.describe()} in {encodes} tries")
         stream, plan, measured = best
+        if measured is None:
+            measured = self.measured_psnr(stream)
         return Outcome(stream, plan, target, encodes, dict(self.seconds_), measured)
 
-    def _encode(self, plan: Plan) -> Bitstream:
+    def _encode(self, plan: Plan, target: Target) -> Bitstream:
+        """One real encode of ``plan``; the header records the target (the settings are in its rate point)."""
         encoder = Encoder(plan.rate_point, sh_stage=self.stage_, fit_stage=False, workers=self.workers,
                           progress=self.progress, chunk_cache=self._cache)
-        return encoder.encode(self.cloud)
+        stream = encoder.encode(self.cloud)
+        stream.header["rate_control"] = {"target": {"kind": target.kind, "value": target.value},
+                                         "template": self.template.name}
+        return stream
 
-    def _adjust(self, plan: Plan, rate_fix: float, error_fix: float, *, limit: float = math.inf,
+    def _adjust(self, plan: Plan, *, limit: float = math.inf,
                 max_mse: float = math.inf) -> Plan | None:
         """The QPs moved step by step (position bits fixed) until the corrected prediction meets the
         target: ``limit`` bytes as closely as possible from below, or ``max_mse`` at the fewest bytes."""
-        current = self._predict(plan.settings, rate_fix, error_fix)
+        current = self._predict(plan.settings)
         while current.predicted_bytes > limit or current.predicted_mse > max_mse:  # too big or too poor
-            cheaper = current.predicted_bytes > limit
-            step = self._step(current, rate_fix, error_fix, cheaper=cheaper)
+            step = self._step(current, cheaper=current.predicted_bytes > limit)
             if step is None:
                 return None
             current = step
         while True:  # spend what is left, or save what the quality allows
-            spend = math.isfinite(limit)
-            step = self._step(current, rate_fix, error_fix, cheaper=not spend)
-            if step is None or step.predicted_bytes > limit or step.predicted_mse > max_mse:
+            step = self._step(current, cheaper=not math.isfinite(limit), limit=limit, max_mse=max_mse)
+            if step is None:
                 return current
             current = step
 
-    def _step(self, plan: Plan, rate_fix: float, error_fix: float, *, cheaper: bool) -> Plan | None:
+    def _step(self, plan: Plan, *, cheaper: bool, limit: float = math.inf,
+              max_mse: float = math.inf) -> Plan | None:
         """One QP step of one attribute: the least error added per byte saved (``cheaper``), or the
-        most error removed per byte spent."""
+        most error removed per byte spent; only steps whose prediction stays within ``limit`` bytes and
+        ``max_mse``."""
         moves = []
         for name, model in self.models_.items():
             if name == "positions":
@@ -414,13 +451,15 @@ class RateController:
             j = i + (1 if cheaper else -1)  # a higher QP costs fewer bytes
             if not 0 <= j < model.choices.size:
                 continue
-            d_bytes, d_mse = model.bytes[j] - model.bytes[i], model.mse[j] - model.mse[i]
+            d_bytes = self._bytes(name, int(model.choices[j])) - self._bytes(name, int(model.choices[i]))
+            d_mse = model.mse[j] - model.mse[i]
             if d_bytes != 0 and (d_bytes < 0) == cheaper:
                 moves.append((d_mse / abs(d_bytes), name, int(model.choices[j])))
-        if not moves:
-            return None
-        _, name, value = min(moves)
-        return self._predict({**plan.settings, name: value}, rate_fix, error_fix)
+        for _, name, value in sorted(moves):
+            step = self._predict({**plan.settings, name: value})
+            if step.predicted_bytes <= limit and step.predicted_mse <= max_mse:
+                return step
+        return None
 
     def measured_psnr(self, stream: Bitstream) -> float:
         """PSNR of the decoded stream against the uncompressed model on the controller's views."""
@@ -429,6 +468,14 @@ class RateController:
 
 
 # ------------------------------------------------------------------ helpers
+def _model_sizes(stream: Bitstream) -> dict[str, int]:
+    """Bytes per modelled attribute; the SH stage's side information counts with the SH features
+    (water-filling sets how many components it stores)."""
+    sizes = dict(stream.attribute_sizes())
+    sizes["sh"] = sizes.get("sh", 0) + sizes.pop("sh_state", 0)
+    return sizes
+
+
 def _key(plan: Plan) -> tuple:
     return tuple(sorted(plan.settings.items()))
 

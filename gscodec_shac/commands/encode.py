@@ -1,4 +1,8 @@
-"""``gscodec-shac encode IN.ply OUT.gsc``: compress a 3DGS PLY at a rate point."""
+"""``gscodec-shac encode IN.ply OUT.gsc``: compress a 3DGS PLY at a rate point or to a target.
+
+With ``--target-size``, ``--target-bpg`` or ``--target-psnr`` the rate controller
+(:mod:`gscodec_shac.codec.rate_control`) picks the settings of the ``shac_auto`` template.
+"""
 
 from __future__ import annotations
 
@@ -29,8 +33,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("input", help="input .ply")
     parser.add_argument("output", help="output .gsc (written atomically)")
-    parser.add_argument("--rate-point", "-r", default="paper_table3:rp2",
-                        help="FILE:POINT, e.g. paper_table3:rp2, mpeg_ctc_video:rp01, gsplat_png (default: %(default)s)")
+    parser.add_argument("--rate-point", "-r",
+                        help="FILE:POINT, e.g. paper_table3:rp2, mpeg_ctc_video:rp01, gsplat_png (default: "
+                        "paper_table3:rp2; with a target: the template shac_auto:template)")
+    target = parser.add_argument_group("rate control (one target; the settings are chosen per scene)")
+    target.add_argument("--target-size", metavar="SIZE",
+                        help="the largest file, e.g. 2.5MB, 800kB, 1200000 (B, kB, MB, GB, KiB, MiB, GiB)")
+    target.add_argument("--target-bpg", type=float, metavar="BITS", help="the largest size in bits per Gaussian")
+    target.add_argument("--target-psnr", type=float, metavar="DB",
+                        help="the lowest PSNR (dB) against the uncompressed model on --cameras (else orbit views)")
+    target.add_argument("--cameras", help="views the quality is judged from (any camera file or capture folder)")
+    target.add_argument("--up", default="0,0,1",
+                        help="world up axis of the orbit views without --cameras (default 0,0,1; splat-transform "
+                        "and most web viewers use 0,1,0 or 0,-1,0)")
     parser.add_argument("--sh", choices=STAGES.names(),
                         help="SH stage (default: the rate point's): "
                         + "; ".join(f"{name}: {cls.summary}" for name, cls in STAGES.items()))
@@ -57,7 +72,12 @@ def run(args: argparse.Namespace) -> int:
     from gscodec_shac.codec import encode_file
     from gscodec_shac.codec.rate_points import load_rate_point
 
-    point = load_rate_point(args.rate_point)
+    targets = (args.target_size, args.target_bpg, args.target_psnr)
+    if any(t is not None for t in targets):
+        return _run_to_target(args)
+    if args.cameras is not None:
+        raise GscodecError("--cameras applies to --target-psnr (the views the quality is judged from)")
+    point = load_rate_point(args.rate_point or "paper_table3:rp2")
     stage = args.sh or point.sh_stage
     params = {}
     for flag, users in stage_options().items():
@@ -83,4 +103,33 @@ def run(args: argparse.Namespace) -> int:
             f"({summary['num_gaussians']:,} Gaussians, {summary['rate_point']}, SH stage {summary['sh_stage']}) "
             f"in {summary['seconds']:.1f} s"
         )
+    return 0
+
+
+def _run_to_target(args: argparse.Namespace) -> int:
+    import json
+
+    from gscodec_shac.codec import encode_file_to_target
+    from gscodec_shac.codec.rate_control import TEMPLATE
+    from gscodec_shac.commands._options import comma_floats
+    from gscodec_shac.errors import GscodecError
+
+    fixed = [flag for flag, value in (("--sh", args.sh), ("--sort", args.sort), ("--seed", args.seed)) if value is not None]
+    fixed += ["--" + f.replace("_", "-") for f in stage_options() if getattr(args, f) is not None]
+    if fixed:
+        raise GscodecError(f"{', '.join(fixed)} cannot be combined with a target: the rate controller chooses the "
+                           "SH stage settings and the grid order follows from the positions")
+    summary = encode_file_to_target(
+        args.input, args.output, size=args.target_size, bpg=args.target_bpg, psnr=args.target_psnr,
+        template=args.rate_point or TEMPLATE, cameras=args.cameras, up=tuple(comma_floats(args.up, "--up")),
+        preset=args.preset, progress=not args.quiet and sys.stderr.isatty(),
+    )
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    control = summary["rate_control"]
+    settings = ", ".join(f"{k} {v}" for k, v in control["settings"].items())
+    quality = f", {control['measured_psnr']:.2f} dB against the uncompressed model"
+    print(f"wrote {summary['output']}: {summary['bytes']:,} bytes, {summary['bits_per_gaussian']:.2f} bits/Gaussian"
+          f"{quality} ({settings}; {control['encodes']} encode(s)) in {summary['seconds']:.1f} s")
     return 0

@@ -1,0 +1,116 @@
+"""Rate control (SHAC-auto) and water-filled SH QPs: targets met, clear errors, determinism."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gscodec_shac.cli import main
+from gscodec_shac.codec import Decoder, Encoder, load_rate_point
+from gscodec_shac.codec.allocation import MAX_QP, waterfill_qps
+from gscodec_shac.codec.rate_control import (
+    SIZE_TOLERANCE,
+    RateController,
+    Target,
+    TargetUnreachableError,
+    make_target,
+    parse_size,
+)
+from gscodec_shac.errors import ValidationError
+from gscodec_shac.io.ply import write_ply
+
+
+@pytest.fixture(scope="module")
+def controller(small_scene):
+    return RateController(small_scene.cloud, views=small_scene.cameras, workers=2).fit()
+
+
+# ---------------------------------------------------------------- targets
+@pytest.mark.parametrize("text, value", [("2.5MB", 2.5e6), ("800kB", 8e5), ("1200000", 1.2e6), ("1 KiB", 1024),
+                                         ("3mib", 3 * 1024**2), ("10 bytes", 10)])
+def test_sizes_parse_with_units(text, value):
+    assert parse_size(text) == pytest.approx(value)
+
+
+@pytest.mark.parametrize("text", ["", "2.5 parsecs", "-3MB", "MB", "0"])
+def test_bad_sizes_are_clear_errors(text):
+    with pytest.raises(ValidationError, match="size"):
+        parse_size(text)
+
+
+def test_exactly_one_target():
+    assert make_target(1000, bpg=80) == Target("bytes", 10_000)
+    with pytest.raises(ValidationError, match="exactly one"):
+        make_target(1000, size="1MB", psnr=40)
+    with pytest.raises(ValidationError, match="exactly one"):
+        make_target(1000)
+
+
+# ------------------------------------------------------------ water-filling
+def test_waterfill_gives_equal_weighted_steps_and_drops_weak_features():
+    ranges = np.array([8.0, 4.0, 2.0, 1.0, 1e-6])
+    qps = waterfill_qps(ranges, None, base_qp=20)
+    assert qps == [20, 26, 32, 38]  # 6 QP per halving of the range; the last one dropped (QP > 51)
+    weighted = waterfill_qps(np.array([1.0, 1.0]), np.array([1.0, 4.0]), base_qp=30)
+    assert weighted == [36, 30]  # twice the error weight: the same step needs a range twice as fine
+    assert all(q <= MAX_QP for q in waterfill_qps(np.array([1.0, 1e-3, 1.0]), None, 45))
+
+
+def test_waterfilled_pca_stream_round_trips_with_a_qp_per_component(small_cloud):
+    point = load_rate_point("shac_auto:template")
+    stream = Encoder(point).encode(small_cloud)
+    qps = [stream.chunk(c).meta["qp"] for c in stream.header["attributes"]["sh"]["chunks"]]
+    assert len(set(qps)) > 3 and qps[0] == point.attributes["sh_features"].qp
+    decoded = Decoder().decode(stream.to_bytes())
+    assert decoded.num_gaussians == small_cloud.num_gaussians
+    coarse = Encoder(load_rate_point("shac_auto:template").with_overrides(codec_options={"preset": "ultrafast"}))
+    assert coarse.encode(small_cloud).header["sh"]["features"] <= stream.header["sh"]["features"]
+
+
+# ------------------------------------------------------------ controller
+@pytest.mark.parametrize("bits_per_gaussian", [160, 320])
+def test_size_target_is_met_from_below_within_tolerance(controller, small_cloud, bits_per_gaussian):
+    target = Target("bytes", bits_per_gaussian * small_cloud.num_gaussians / 8)
+    outcome = controller.encode(target)
+    size = len(outcome.stream.to_bytes())
+    assert (1 - SIZE_TOLERANCE) * target.value <= size <= target.value
+    assert outcome.stream.header["rate_control"]["target"] == {"kind": "bytes", "value": target.value}
+    assert outcome.measured_psnr == pytest.approx(controller.measured_psnr(outcome.stream))
+
+
+def test_more_bytes_buy_more_quality(controller, small_cloud):
+    low = controller.encode(Target("bytes", 140 * small_cloud.num_gaussians / 8))
+    high = controller.encode(Target("bytes", 400 * small_cloud.num_gaussians / 8))
+    assert high.measured_psnr > low.measured_psnr + 3
+
+
+def test_psnr_target_is_met(controller):
+    outcome = controller.encode(Target("psnr", 38.0))
+    assert outcome.measured_psnr >= 38.0
+
+
+def test_unreachable_targets_name_the_reachable_limit(controller):
+    with pytest.raises(TargetUnreachableError, match=r"smallest file .* \(about [\d,]+ bytes"):
+        controller.plan(Target("bytes", 100))
+    with pytest.raises(TargetUnreachableError, match=r"best quality .* \(about [\d.]+ dB"):
+        controller.plan(Target("psnr", 150))
+
+
+def test_same_input_and_target_give_the_same_bytes(small_scene):
+    target = Target("bytes", 200 * small_scene.cloud.num_gaussians / 8)
+    first = RateController(small_scene.cloud, views=small_scene.cameras, workers=1).fit().encode(target)
+    again = RateController(small_scene.cloud, views=small_scene.cameras, workers=2).fit().encode(target)
+    assert first.stream.to_bytes() == again.stream.to_bytes()
+
+
+def test_cli_target_writes_nothing_when_unreachable(tmp_path, small_cloud, capsys):
+    ply = tmp_path / "in.ply"
+    write_ply(ply, small_cloud)
+    out = tmp_path / "out.gsc"
+    assert main(["encode", str(ply), str(out), "--target-size", "200B"]) == 2
+    assert "smallest file" in capsys.readouterr().err and not out.exists()
+    assert list(tmp_path.iterdir()) == [ply]
+    assert main(["encode", str(ply), str(out), "--target-bpg", "100", "--sh", "pca"]) == 2
+    assert "cannot be combined with a target" in capsys.readouterr().err
+    assert main(["encode", str(ply), str(out), "--target-bpg", "250", "--json", "-q"]) == 0
+    assert 0.97 * 250 <= 8 * out.stat().st_size / small_cloud.num_gaussians <= 250
