@@ -27,7 +27,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Compress an Inria 3DGS PLY into a self-describing .gsc file at a rate point "
         "(a shipped one such as paper_table3:rp2, or FILE.yaml[:POINT]), optionally with an SH stage.",
     )
-    parser.add_argument("input", help="input .ply")
+    parser.add_argument("input", help="input model: Inria .ply, .compressed.ply, .spz, .splat, .sog, SOG meta.json "
+                        "(or its folder), gsplat checkpoint .pt")
     parser.add_argument("output", help="output .gsc (written atomically)")
     parser.add_argument("--rate-point", "-r", default="paper_table3:rp2",
                         help="FILE:POINT, e.g. paper_table3:rp2, mpeg_ctc_video:rp01, gsplat_png (default: %(default)s)")
@@ -56,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
     from gscodec_shac.errors import GscodecError
     from gscodec_shac.codec import encode_file
     from gscodec_shac.codec.rate_points import load_rate_point
+    from gscodec_shac.io.models import report_notes
 
     point = load_rate_point(args.rate_point)
     stage = args.sh or point.sh_stage
@@ -75,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
         args.input, args.output, point, sh=args.sh, sort=args.sort, seed=args.seed, preset=args.preset,
         progress=not args.quiet and sys.stderr.isatty(), **params,
     )
+    report_notes(summary["notes"])
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
