@@ -71,7 +71,7 @@ def write_splat(path: str | os.PathLike, cloud: GaussianCloud) -> None:
     if cloud.extra:
         note(f"{path}: .splat has no place for extra properties; dropped {', '.join(cloud.extra)}")
     scales = np.exp(cloud.scales.astype(np.float64))
-    if not np.all(np.isfinite(scales.astype(np.float32))):
+    if np.any(scales > np.finfo(np.float32).max):
         raise ModelFormatError(f"{path}: log-scales above {np.log(np.finfo(np.float32).max):.1f} overflow float32")
     records = np.empty(n, dtype=RECORD)
     records["position"] = cloud.means
