@@ -456,3 +456,19 @@ def test_unknown_formats_are_one_clear_error(tmp_path):
         read_model(zipped)
     write_ply(tmp_path / "a.ply", _cloud(3))
     assert detect_format(tmp_path / "a.ply") == "ply"
+
+
+def test_rd_scene_in_a_deployed_format_is_converted_natively(tmp_path, monkeypatch):
+    from gscodec_shac.io.ply import read_ply
+    from gscodec_shac.rd.scenes import prepare_scene
+    from gscodec_shac.rd.spec import OrbitSpec, SceneSpec
+
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))  # no node, no splat-transform
+    monkeypatch.setenv("GSCODEC_SHAC_NPM_PREFIX", str(tmp_path / "npm"))
+    cloud = _cloud(300, degree=1)
+    for name in ("scene.spz", "scene.sog", "scene.pt"):
+        write_model(tmp_path / name, cloud)
+        spec = SceneSpec(name=name.replace(".", "_"), ply=str(tmp_path / name), orbit=OrbitSpec(n=2, width=16, height=12))
+        assert spec.needs_conversion
+        prepared = prepare_scene(spec, tmp_path / "out")
+        assert prepared.ply.endswith("scene.ply") and read_ply(prepared.ply).num_gaussians == 300
