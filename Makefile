@@ -2,7 +2,7 @@
 # Both build the environment from nothing: a venv in .venv with the CPU build of
 # torch 2.13.0 installed *before* the project (a plain `torch` requirement would
 # pull GBs of CUDA packages), then the project; `make test` adds the test and
-# `distributed` (Ray) extras.
+# `distributed` (Ray) and `gsplat` (the real gsplat package for the drop-in's test) extras.
 
 VENV   ?= .venv
 PYTHON ?= python3
@@ -25,9 +25,9 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/gscodec-shac demo --out $(DEMO_OUT)
 
-# The tests also cover the Ray executor, so they install the `distributed` extra.
+# The tests also cover the Ray executor and the gsplat drop-in, so they install those extras.
 $(TEST_STAMP): $(STAMP)
-	$(BIN)/pip install --quiet -e ".[dev,distributed]"
+	$(BIN)/pip install --quiet -e ".[dev,distributed,gsplat]"
 	touch $(TEST_STAMP)
 
 test: $(TEST_STAMP)

@@ -32,3 +32,7 @@ class RatePointError(GscodecError):
 
 class CodecUnavailableError(GscodecError):
     """A grid codec or external tool needed for the job is not installed."""
+
+
+class ModelFormatError(GscodecError):
+    """A Gaussian model file (SPZ, .splat, SOG, compressed.ply, gsplat checkpoint) is unusable or unknown."""

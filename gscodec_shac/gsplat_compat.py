@@ -5,15 +5,22 @@ gsplat keeps a model as a dict of tensors::
     means (N, 3)   scales (N, 3) log   quats (N, 4) wxyz   opacities (N,) logits
     sh0 (N, 1, 3)  shN (N, K-1, 3)     (torch tensors; numpy arrays work too)
 
-:class:`ShacCompression` has the two methods of gsplat's ``PngCompression``
-(``compress(compress_dir, splats)`` and ``decompress(compress_dir) -> splats``)
-and writes one ``splats.gsc`` file, so a gsplat training script swaps it in
-with one line (gsplat itself is not needed)::
+plus, in some trainings, other per-Gaussian tensors (``features`` and ``colors`` with
+appearance optimisation, or a user's own).
+
+:class:`ShacCompression` has the constructor and the two methods of gsplat 1.5's
+``PngCompression`` (``ShacCompression(use_sort=True, verbose=True)``,
+``compress(compress_dir, splats)`` and ``decompress(compress_dir) -> splats``), our
+settings following as keywords. It writes ``splats.gsc`` and, when the splats hold
+other keys, ``splats.extra.npz`` beside it: those tensors coded losslessly (numpy's
+deflated npz, dtype and shape kept), in the decoded (grid) order, as gsplat's own codec
+stores keys it does not know. A gsplat training script swaps it in with one line
+(gsplat itself is not needed; docs/formats.md shows the change to simple_trainer.py)::
 
     from gscodec_shac.gsplat_compat import ShacCompression
 
     # was: compression_method = PngCompression()
-    compression_method = ShacCompression("gsplat_png", sh="pca", sh_params={"energy_retention": 0.99})
+    compression_method = ShacCompression(rate_point="gsplat_png", sh="pca", sh_params={"energy_retention": 0.99})
     compression_method.compress(compress_dir, runner.splats)
     splats = compression_method.decompress(compress_dir)   # dict of CPU tensors, grid order
 
@@ -27,6 +34,7 @@ the codec, e.g. to apply SHAC-PCA before gsplat's own k-means::
 
 from __future__ import annotations
 
+import io
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,8 +43,9 @@ from typing import Any, Mapping
 import numpy as np
 
 from gscodec_shac import sh_index
+from gscodec_shac.atomic import write_atomic
 from gscodec_shac.codec.container import Bitstream
-from gscodec_shac.errors import ValidationError
+from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.shac.base import ShStage, make_stage
 
@@ -52,13 +61,15 @@ def to_numpy(value: Any) -> np.ndarray:
 
 
 def splats_to_cloud(splats: Mapping[str, Any]) -> GaussianCloud:
-    """A gsplat splats dict -> :class:`GaussianCloud` (same rows, same order)."""
+    """A gsplat splats dict -> :class:`GaussianCloud` (same rows, same order; other keys in ``extra``).
+
+    Works on a dict or on the trainer's ``torch.nn.ParameterDict``; ``extra`` keeps the
+    other tensors' dtypes and shapes (one row per Gaussian).
+    """
     missing = [k for k in SPLAT_KEYS if k not in splats]
     if missing:
         raise ValidationError(f"splats dict lacks {', '.join(missing)} (needs {', '.join(SPLAT_KEYS)})")
-    extra = sorted(set(splats) - set(SPLAT_KEYS))
-    if extra:
-        raise ValidationError(f"splats dict has keys this codec does not code: {', '.join(extra)}")
+    extra = {str(k): _raw_numpy(splats[k]) for k in splats if k not in SPLAT_KEYS}
     sh0 = to_numpy(splats["sh0"])
     if sh0.ndim != 3 or sh0.shape[1:] != (1, 3):
         raise ValidationError(f"sh0 must have shape (N, 1, 3), got {sh0.shape}")
@@ -69,11 +80,22 @@ def splats_to_cloud(splats: Mapping[str, Any]) -> GaussianCloud:
         opacities=to_numpy(splats["opacities"]).reshape(-1),
         sh_dc=sh0[:, 0, :],
         sh_rest=to_numpy(splats["shN"]),
+        extra=extra,
     )
 
 
+def _raw_numpy(value: Any) -> np.ndarray:
+    """A tensor or array-like as numpy with its own dtype (no float32 cast)."""
+    if hasattr(value, "detach"):
+        return value.detach().cpu().numpy()
+    return np.asarray(value)
+
+
 def cloud_to_splats(cloud: GaussianCloud, *, as_torch: bool | None = None) -> dict[str, Any]:
-    """:class:`GaussianCloud` -> gsplat splats dict (torch CPU tensors when torch imports, unless ``as_torch=False``)."""
+    """:class:`GaussianCloud` -> gsplat splats dict (torch CPU tensors when torch imports, unless ``as_torch=False``).
+
+    ``cloud.extra`` entries follow the six gsplat keys.
+    """
     arrays = {
         "means": cloud.means,
         "scales": cloud.scales,
@@ -82,6 +104,7 @@ def cloud_to_splats(cloud: GaussianCloud, *, as_torch: bool | None = None) -> di
         "sh0": cloud.sh_dc[:, None, :],
         "shN": cloud.sh_rest,
     }
+    arrays.update({k: v for k, v in cloud.extra.items() if k not in arrays})
     if as_torch is None:
         try:
             import torch  # noqa: F401
@@ -132,35 +155,64 @@ def sh_from_features(stage: ShStage, features: np.ndarray, *, like: Any = None) 
 # --------------------------------------------------------------------- codec
 @dataclass
 class ShacCompression:
-    """gsplat ``PngCompression``-shaped codec writing ``compress_dir/splats.gsc``.
+    """gsplat ``PngCompression``-shaped codec writing ``compress_dir/splats.gsc`` (+ ``splats.extra.npz``).
 
-    ``rate_point``: a rate-point reference (default ``"gsplat_png"``: 8-bit PNG +
-    k-means SH, as gsplat); ``sh``/``sh_params``: SH stage override;
-    ``use_sort``: sort onto the grid with the rate point's method (else raster
-    order, as gsplat's ``use_sort=False``); ``verbose``: progress bars.
+    ``use_sort``: sort onto the grid with the rate point's method (else raster order,
+    as gsplat's ``use_sort=False``); ``verbose``: progress bars (as gsplat: on by
+    default). Ours, by keyword: ``rate_point`` (default ``"gsplat_png"``: 8-bit PNG +
+    k-means SH, as gsplat), ``sh``/``sh_params`` (SH stage override), ``filename`` and
+    ``extra_filename`` (the side file of the other splat keys).
     """
 
+    use_sort: bool = True
+    verbose: bool = True
     rate_point: str = "gsplat_png"
     sh: str | None = None
     sh_params: dict[str, Any] = field(default_factory=dict)
-    use_sort: bool = True
-    verbose: bool = False
     filename: str = "splats.gsc"
+    extra_filename: str = "splats.extra.npz"
 
     def compress(self, compress_dir: str | os.PathLike, splats: Mapping[str, Any]) -> None:
-        """Encode ``splats`` into ``compress_dir/<filename>`` (directory created)."""
+        """Encode ``splats`` into ``compress_dir`` (created); ``splats`` is not modified."""
         from gscodec_shac.codec import Encoder
 
-        Path(compress_dir).mkdir(parents=True, exist_ok=True)
+        directory = Path(compress_dir)
+        cloud = splats_to_cloud(splats)
         encoder = Encoder(
             self.rate_point, sh_stage=self.sh, sh_params=dict(self.sh_params),
             sort=None if self.use_sort else "none", progress=self.verbose,
         )
-        encoder.encode(splats_to_cloud(splats)).write(Path(compress_dir) / self.filename)
+        stream = encoder.encode(cloud)
+        directory.mkdir(parents=True, exist_ok=True)
+        extra_path = directory / self.extra_filename
+        if cloud.extra:  # the decoded rows are encoder.order_ of the input: store the extras that way
+            buffer = io.BytesIO()
+            np.savez_compressed(buffer, **{k: v[encoder.order_] for k, v in cloud.extra.items()})
+            write_atomic(extra_path, buffer.getvalue())
+        else:
+            extra_path.unlink(missing_ok=True)  # never pair this .gsc with an older run's extras
+        stream.write(directory / self.filename)
 
     def decompress(self, compress_dir: str | os.PathLike) -> dict[str, Any]:
-        """Decode ``compress_dir/<filename>`` into a splats dict (Gaussians in grid order)."""
+        """Decode ``compress_dir`` into a splats dict (Gaussians in grid order, extra keys included)."""
         from gscodec_shac.codec import Decoder
 
-        stream = Bitstream.read(Path(compress_dir) / self.filename)
-        return cloud_to_splats(Decoder(progress=self.verbose).decode(stream))
+        directory = Path(compress_dir)
+        stream = Bitstream.read(directory / self.filename)
+        splats = cloud_to_splats(Decoder(progress=self.verbose).decode(stream))
+        extra_path = directory / self.extra_filename
+        if extra_path.is_file():
+            import torch
+
+            n = splats["means"].shape[0]
+            try:
+                with np.load(extra_path, allow_pickle=False) as data:
+                    extra = {key: data[key] for key in data.files}
+            except (OSError, ValueError) as exc:
+                raise GscodecError(f"{extra_path}: unreadable extra splat keys ({exc})") from None
+            for key, value in extra.items():
+                if value.ndim < 1 or value.shape[0] != n:
+                    raise GscodecError(f"{extra_path}: {key!r} has {value.shape[0] if value.ndim else 0} rows, "
+                                       f"the decoded splats {n}: the side file belongs to another compression")
+                splats[key] = torch.from_numpy(np.ascontiguousarray(value))
+        return splats

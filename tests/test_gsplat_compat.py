@@ -35,14 +35,14 @@ def test_bad_dicts(splats):
     missing.pop("quats")
     with pytest.raises(ValidationError, match="lacks quats"):
         splats_to_cloud(missing)
-    with pytest.raises(ValidationError, match="does not code: features"):
-        splats_to_cloud({**splats, "features": splats["means"]})
+    with pytest.raises(ValidationError, match="extra property 'features' has shape"):
+        splats_to_cloud({**splats, "features": splats["means"][:5]})
     with pytest.raises(ValidationError, match="sh0"):
         splats_to_cloud({**splats, "sh0": splats["sh0"][:, 0]})
 
 
 def test_compress_decompress_like_png_compression(tmp_path, splats):
-    codec = ShacCompression("paper_table3:rp4", sh="pca", sh_params={"energy_retention": 0.999})
+    codec = ShacCompression(rate_point="paper_table3:rp4", sh="pca", sh_params={"energy_retention": 0.999}, verbose=False)
     codec.compress(str(tmp_path / "c"), splats)
     assert (tmp_path / "c" / "splats.gsc").is_file()
     out = codec.decompress(str(tmp_path / "c"))
@@ -57,10 +57,31 @@ def test_compress_decompress_like_png_compression(tmp_path, splats):
 
 
 def test_numpy_splats_and_no_sort(tmp_path, small_cloud):
-    codec = ShacCompression("gsplat_png", sh_params={"n_clusters": 256}, use_sort=False)
+    codec = ShacCompression(False, False, rate_point="gsplat_png", sh_params={"n_clusters": 256})  # use_sort, verbose
     codec.compress(tmp_path, cloud_to_splats(small_cloud, as_torch=False))
     out = codec.decompress(tmp_path)
     assert np.abs(out["means"].numpy() - small_cloud.means).max() < 1e-3  # raster order = input order
+
+
+def test_extra_keys_are_carried_losslessly_in_decoded_order(tmp_path, splats):
+    n = splats["means"].shape[0]
+    extra = {"features": torch.randn(n, 6), "colors": torch.randn(n, 3), "ids": torch.arange(n, dtype=torch.int64)}
+    given = {**splats, **extra}
+    before = {k: v.clone() for k, v in given.items()}
+    codec = ShacCompression(rate_point="paper_table3:rp4", verbose=False)
+    codec.compress(tmp_path, given)
+    assert all(torch.equal(given[k], before[k]) for k in given)  # the caller's dict is left alone
+    assert (tmp_path / "splats.extra.npz").is_file()
+    out = codec.decompress(tmp_path)
+    assert set(out) == set(given)
+    rows = out["ids"].numpy()  # which input row each decoded row came from
+    assert out["ids"].dtype == torch.int64 and sorted(rows) == list(range(n))
+    for key in ("features", "colors"):
+        assert out[key].dtype == torch.float32 and torch.equal(out[key], extra[key][rows])
+    assert np.abs(out["means"].numpy() - splats["means"].numpy()[rows]).max() < 1e-3
+    # a later compress without extras removes the side file, so nothing stale is attached
+    codec.compress(tmp_path, splats)
+    assert not (tmp_path / "splats.extra.npz").exists() and set(codec.decompress(tmp_path)) == set(splats)
 
 
 def test_sh_stages_on_dicts_and_arrays(splats):

@@ -1,4 +1,7 @@
-"""File in, file out: PLY -> ``.gsc`` and ``.gsc`` -> PLY, written atomically, with a summary."""
+"""File in, file out: a model file -> ``.gsc`` and ``.gsc`` -> a model file, written atomically, with a summary.
+
+Models are read and written by :mod:`gscodec_shac.io.models` (Inria PLY, SPZ, .splat, SOG,
+compressed.ply, gsplat checkpoints; the output format follows the extension)."""
 
 from __future__ import annotations
 
@@ -27,20 +30,21 @@ def encode_file(
     progress: bool = False,
     **stage_params: Any,
 ) -> dict[str, Any]:
-    """PLY -> ``.gsc`` (written atomically); returns a summary (bytes, bits per Gaussian, seconds).
+    """Any model file ``read_model`` reads -> ``.gsc`` (written atomically); returns a summary
+    (bytes, bits per Gaussian, seconds, the reader's ``notes``).
 
     ``sh`` picks the SH stage (default: the rate point's), ``stage_params`` its
     parameters (e.g. ``energy_retention=0.99``); ``preset`` sets the lossy
     codecs' speed preset (x265's ``preset`` option).
     """
-    from gscodec_shac.io.ply import read_ply
+    from gscodec_shac.io.models import read_model
 
     tic = time.perf_counter()
     _check_output_dir(out_gsc)
     encoder = Encoder(rate_point, sh_stage=sh, sort=sort, seed=seed,
                       sh_params={k: v for k, v in stage_params.items() if v is not None},
                       codec_options={"preset": preset} if preset else None, progress=progress)
-    cloud = read_ply(in_ply)
+    cloud, notes = read_model(in_ply)
     stream = encoder.encode(cloud)
     size = stream.write(out_gsc)
     return {
@@ -55,6 +59,7 @@ def encode_file(
         "seconds": time.perf_counter() - tic,
         "timings": encoder.timings_,
         "sizes": stream.attribute_sizes(),
+        "notes": notes,
     }
 
 
@@ -105,14 +110,15 @@ def encode_file_to_target(
 
 
 def decode_file(in_gsc: str | os.PathLike, out_ply: str | os.PathLike, *, progress: bool = False) -> dict[str, Any]:
-    """``.gsc`` -> Inria PLY (written atomically); returns a summary."""
-    from gscodec_shac.io.ply import write_ply
+    """``.gsc`` -> a model file by extension (.ply, .spz, .splat, .sog, .pt; written atomically); returns a summary."""
+    from gscodec_shac.io.models import check_model_extension, write_model
 
     tic = time.perf_counter()
     _check_output_dir(out_ply)
     stream = Bitstream.read(in_gsc)
+    check_model_extension(out_ply)
     cloud = Decoder(progress=progress).decode(stream)
-    write_ply(out_ply, cloud)
+    notes = write_model(out_ply, cloud)
     return {
         "input": str(in_gsc),
         "output": str(out_ply),
@@ -120,6 +126,7 @@ def decode_file(in_gsc: str | os.PathLike, out_ply: str | os.PathLike, *, progre
         "sh_degree": cloud.sh_degree,
         "bytes": Path(in_gsc).stat().st_size,
         "seconds": time.perf_counter() - tic,
+        "notes": notes,
     }
 
 

@@ -27,7 +27,9 @@ def describe_cloud(cloud: GaussianCloud, path: str | os.PathLike | None = None) 
         "ranges": _ranges(cloud),
     }
     if path is not None:
-        size = Path(path).stat().st_size
+        from gscodec_shac.io.models import model_bytes
+
+        size = model_bytes(path)
         summary["file"] = str(path)
         summary["file_bytes"] = size
         summary["file_bytes_per_gaussian"] = size / n

@@ -34,7 +34,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "for the SVD of the standardised matrix and for degree truncation, per scene and averaged "
         "(paper Table I); correlation heatmaps (Fig. 1) and ER curves as PNG.",
     )
-    parser.add_argument("scenes", nargs="*", help="Inria 3DGS .ply files with SH degree >= 1")
+    parser.add_argument("scenes", nargs="*", help="models with SH degree >= 1 (Inria .ply, .spz, .sog, "
+                        "compressed.ply, gsplat .pt, ...)")
     parser.add_argument("--er", type=float, default=0.95, help="energy retention target (default 0.95)")
     parser.add_argument("--k", type=int, default=24, help="components / columns for the energy column (default 24)")
     parser.add_argument("--out", help="directory for table.json, table.csv and the PNGs (default: print only)")
@@ -71,11 +72,12 @@ def run(args: argparse.Namespace) -> int:
 def _load_scenes(args: argparse.Namespace):
     """Yield (name, AC matrix) for every PLY and synthetic scene asked for."""
     from gscodec_shac.errors import ValidationError
-    from gscodec_shac.io.ply import read_ply
+    from gscodec_shac.io.models import read_model, report_notes
     from gscodec_shac.synthetic import make_synthetic_scene
 
     for path in args.scenes:
-        cloud = read_ply(path)
+        cloud, notes = read_model(path)
+        report_notes(notes)
         if cloud.sh_degree < 1:
             raise ValidationError(f"{path}: SH degree 0 has no AC coefficients to analyse")
         yield scene_name(Path(path)), cloud.ac_matrix()

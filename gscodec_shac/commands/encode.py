@@ -31,7 +31,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Compress an Inria 3DGS PLY into a self-describing .gsc file at a rate point "
         "(a shipped one such as paper_table3:rp2, or FILE.yaml[:POINT]), optionally with an SH stage.",
     )
-    parser.add_argument("input", help="input .ply")
+    parser.add_argument("input", help="input model: Inria .ply, .compressed.ply, .spz, .splat, .sog, SOG meta.json "
+                        "(or its folder), gsplat checkpoint .pt")
     parser.add_argument("output", help="output .gsc (written atomically)")
     parser.add_argument("--rate-point", "-r",
                         help="FILE:POINT, e.g. paper_table3:rp2, mpeg_ctc_video:rp01, gsplat_png (default: "
@@ -71,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
     from gscodec_shac.errors import GscodecError
     from gscodec_shac.codec import encode_file
     from gscodec_shac.codec.rate_points import load_rate_point
+    from gscodec_shac.io.models import report_notes
 
     targets = (args.target_size, args.target_bpg, args.target_psnr)
     if any(t is not None for t in targets):
@@ -95,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
         args.input, args.output, point, sh=args.sh, sort=args.sort, seed=args.seed, preset=args.preset,
         progress=not args.quiet and sys.stderr.isatty(), **params,
     )
+    report_notes(summary["notes"])
     if args.json:
         print(json.dumps(summary, indent=2))
     else:

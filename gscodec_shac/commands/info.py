@@ -14,7 +14,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Describe a 3DGS PLY (Gaussian count, SH degree, per-attribute ranges, bytes per "
         "Gaussian, SH share) or a .gsc file (header summary, bytes and bits per Gaussian per attribute).",
     )
-    parser.add_argument("file", help="an Inria 3DGS .ply or a .gsc file")
+    parser.add_argument("file", help="a .gsc file or a model: Inria .ply, .compressed.ply, .spz, .splat, .sog, "
+                        "SOG meta.json (or its folder), gsplat checkpoint .pt")
     parser.add_argument("--json", action="store_true", help="print JSON instead of text")
     parser.set_defaults(func=run)
 
@@ -29,10 +30,11 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(summary, indent=2) if args.json else format_gsc_summary(summary))
         return 0
 
-    from gscodec_shac.io.ply import read_ply
+    from gscodec_shac.io.models import read_model, report_notes
     from gscodec_shac.codec.summary import describe_cloud, format_cloud_summary
 
-    cloud = read_ply(args.file)
+    cloud, notes = read_model(args.file)
+    report_notes(notes)
     summary = describe_cloud(cloud, args.file)
     print(json.dumps(summary, indent=2) if args.json else format_cloud_summary(summary))
     return 0

@@ -24,7 +24,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Render a 3DGS PLY from its cameras (or an orbit) with the CPU tile rasteriser "
         "and write 8-bit PNGs (clipped to [0, 1]).",
     )
-    parser.add_argument("scene", help="an Inria 3DGS .ply")
+    parser.add_argument("scene", help="a model: Inria .ply, .compressed.ply, .spz, .splat, .sog, SOG meta.json, gsplat .pt")
     parser.add_argument("--cameras", help="cameras.json, transforms*.json, poses_bounds.npy, a COLMAP model "
                         "or a capture folder; default: an orbit around the scene")
     parser.add_argument("--images-dir", help="ground-truth images for the cameras (enables PSNR/SSIM)")
@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
 
     from gscodec_shac.errors import GscodecError
     from gscodec_shac.io.cameras import load_cameras
-    from gscodec_shac.io.ply import read_ply
+    from gscodec_shac.io.models import read_model, report_notes
     from gscodec_shac.metrics import image_metrics, load_image, load_lpips
     from gscodec_shac.render import Renderer
     from gscodec_shac.render.output import png_names, save_png
@@ -84,7 +84,8 @@ def run(args: argparse.Namespace) -> int:
     background = comma_floats(args.background, "--background")
     if not all(0.0 <= v <= 1.0 for v in background):
         raise GscodecError(f"--background values must lie in [0, 1], got {args.background!r}")
-    cloud = read_ply(args.scene)
+    cloud, notes = read_model(args.scene)
+    report_notes(notes)
     if args.cameras:
         cameras = resize_cameras(_select(load_cameras(args.cameras, args.images_dir), args), args.scale, args.width)
     else:

@@ -2,9 +2,10 @@
 
 The driver turns each :class:`SceneSpec` into a :class:`PreparedScene` whose inputs are
 plain files under ``OUT/scenes/``: the built-in synthetic scene is generated and written
-as a PLY + cameras.json; a deployed-format input (meta.json, .sog, .spz, .splat) is
-converted to a PLY with splat-transform; a scene without cameras gets orbit cameras
-written as cameras.json. Runs then read everything by path.
+as a PLY + cameras.json; a deployed-format input (meta.json, .sog, .spz, .splat,
+compressed.ply, gsplat .pt) is converted to a PLY with the native readers
+(:func:`gscodec_shac.io.models.read_model`; splat-transform only for what they do not
+read, e.g. .ksplat); a scene without cameras gets orbit cameras written as cameras.json. Runs then read everything by path.
 
 A run's evaluation data (:func:`evaluation_views`): the test cameras (every
 ``test_every``-th camera in name order, as 3DGS holds out every 8th view; optionally
@@ -74,13 +75,11 @@ def prepare_scene(spec: SceneSpec, out_dir: str | Path) -> PreparedScene:
         if not ply.exists():
             raise SceneError(f"scene {spec.name!r}: {ply} does not exist")
         if spec.needs_conversion:
-            from gscodec_shac.rd.external import convert_to_ply
-
             folder = out_dir / "scenes" / f"{spec.name}-{file_fingerprint(ply)[:10]}"
             converted = folder / "scene.ply"
             with file_lock(folder / ".lock"):
                 if not converted.is_file():
-                    convert_to_ply(ply, converted)
+                    convert_model_to_ply(ply, converted)
             ply = converted
         if spec.cameras is not None:
             cameras = Path(spec.cameras)
@@ -100,6 +99,25 @@ def prepare_scene(spec: SceneSpec, out_dir: str | Path) -> PreparedScene:
         "background": spec.background, "test_every": spec.test_every, "max_views": spec.max_views,
     })
     return PreparedScene(spec, str(ply), str(cameras), fingerprint, Path(ply).stat().st_size, images)
+
+
+def convert_model_to_ply(source: Path, target: Path) -> None:
+    """A model in another format as an Inria PLY: read natively, else through splat-transform."""
+    from gscodec_shac.errors import ModelFormatError
+    from gscodec_shac.io.models import read_model
+    from gscodec_shac.io.ply import write_ply
+
+    try:
+        cloud, _ = read_model(source)
+    except ModelFormatError as native:
+        from gscodec_shac.rd.external import convert_to_ply, unavailable_reason
+
+        if unavailable_reason() is not None:
+            raise SceneError(f"{native} (and splat-transform cannot convert it: {unavailable_reason()})") from None
+        convert_to_ply(source, target)
+        return
+    target.parent.mkdir(parents=True, exist_ok=True)
+    write_ply(target, cloud)
 
 
 def _write_synthetic(spec: SceneSpec, ply: Path, cameras: Path, gt: Path) -> None:

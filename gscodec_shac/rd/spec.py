@@ -14,7 +14,7 @@ A sweep is scenes x methods x rate points::
       lpips_weights: null                 # LPIPS-VGG weights file (else LPIPS is left empty)
     scenes:
       - name: bonsai
-        ply: /data/bonsai/point_cloud.ply # or meta.json/.sog/.spz/.splat (converted with splat-transform)
+        ply: /data/bonsai/point_cloud.ply # or meta.json/.sog/.spz/.splat/.compressed.ply/.pt (converted to a PLY)
         cameras: /data/bonsai/cameras.json   # any format gscodec_shac.io.cameras.load_cameras reads
         images: /data/mipnerf360_bonsai/images   # optional ground truth (resized with INTER_AREA)
         background: [0, 0, 0]
@@ -47,8 +47,8 @@ from gscodec_shac.errors import GscodecError
 from gscodec_shac.validate import Where
 from gscodec_shac.yaml_file import read_yaml_file
 
-#: Scene inputs that are not Inria PLYs and are converted with splat-transform first.
-CONVERTIBLE_SUFFIXES = (".sog", ".spz", ".splat", ".ksplat", ".json")
+#: Scene inputs that are not Inria PLYs and are converted to one first (native readers, else splat-transform).
+CONVERTIBLE_SUFFIXES = (".sog", ".spz", ".splat", ".ksplat", ".json", ".pt", ".pth")
 SORT_METHODS = ("plas", "morton", "random", "none")
 
 _TOP_KEYS = {"name", "description", "rate_points", "settings", "scenes", "methods"}
@@ -106,8 +106,12 @@ class SceneSpec:
 
     @property
     def needs_conversion(self) -> bool:
-        """The input is a deployed format (SOG, SPZ, .splat, ...) read via splat-transform."""
-        return self.ply is not None and Path(self.ply).suffix.lower() in CONVERTIBLE_SUFFIXES
+        """The input is not an Inria PLY (SOG, SPZ, .splat, compressed.ply, checkpoint, ...) and is converted first."""
+        if self.ply is None:
+            return False
+        path = Path(self.ply)
+        return (path.suffix.lower() in CONVERTIBLE_SUFFIXES or path.name.lower().endswith(".compressed.ply")
+                or path.is_dir())
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)

@@ -1,0 +1,171 @@
+"""One entry point for Gaussian model files: :func:`read_model` and :func:`write_model`.
+
+The reader is chosen by content where the format has a signature, else by extension:
+
+=================  ==========================================================  =========
+format             recognised by                                               write
+=================  ==========================================================  =========
+``ply``            ``ply`` magic, no ``chunk`` element (Inria 3DGS PLY)        ``.ply``
+``compressed-ply`` ``ply`` magic with ``chunk`` + ``packed_*`` properties      no
+``spz``            gzip magic or ``NGSP`` (version 4)                          ``.spz``
+``sog``            a zip holding ``meta.json``; a SOG ``meta.json``; a folder  ``.sog``
+                   holding one
+``gsplat``         a zip holding ``data.pkl`` (torch), or ``.pt``/``.pth``     ``.pt``
+``splat``          the ``.splat`` extension (no signature; size a multiple     ``.splat``
+                   of 32)
+=================  ==========================================================  =========
+
+A file without any of these signatures is handed to the reader its extension names,
+which then says what is wrong with it (e.g. "not a PLY file").
+
+What each format loses is in its module's docstring and in ``docs/formats.md``.
+Readers report what they changed (clamped opacity logits, dropped data) as
+:class:`~gscodec_shac.io.model_common.FormatNote` warnings; here they are returned as
+one-line notes, for the CLI to print.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import warnings
+import zipfile
+from pathlib import Path
+from typing import Any, Callable, TextIO
+
+from gscodec_shac.errors import ModelFormatError
+from gscodec_shac.gaussians import GaussianCloud
+from gscodec_shac.io.model_common import FormatNote
+
+READ_FORMATS = ("ply", "compressed-ply", "spz", "splat", "sog", "gsplat")
+#: Output extension -> format.
+WRITE_EXTENSIONS = {".ply": "ply", ".spz": "spz", ".splat": "splat", ".sog": "sog", ".pt": "gsplat", ".pth": "gsplat"}
+_SUPPORTED = (
+    "Inria .ply, PlayCanvas .compressed.ply, .spz (versions 1-3; 4 with zstandard), .splat, "
+    "SOG (.sog, meta.json or its folder), gsplat checkpoint .pt"
+)
+
+
+def detect_format(path: str | os.PathLike) -> str:
+    """The format name of ``path`` (see the module table); unknown -> :class:`ModelFormatError`."""
+    from gscodec_shac.io.compressed_ply import is_compressed_ply_header
+    from gscodec_shac.io.sog import find_sog_meta
+
+    path = Path(path)
+    if not path.exists():
+        raise ModelFormatError(f"{path}: no such file or folder")
+    if path.is_dir():
+        if find_sog_meta(path) is not None:
+            return "sog"
+        raise ModelFormatError(f"{path}: a folder without a SOG meta.json; supported: {_SUPPORTED}")
+    with open(path, "rb") as handle:
+        head = handle.read(4096)
+    if head.startswith(b"ply"):
+        text = head.decode("latin-1")
+        return "compressed-ply" if is_compressed_ply_header(text.split("end_header")[0]) else "ply"
+    if head[:2] == b"\x1f\x8b" or head[:4] == b"NGSP":
+        return "spz"
+    if head[:4] == b"PK\x03\x04":
+        try:
+            with zipfile.ZipFile(path) as bundle:
+                names = [Path(n).name for n in bundle.namelist()]
+        except (zipfile.BadZipFile, OSError):
+            raise ModelFormatError(f"{path}: a corrupt zip file (neither a .sog bundle nor a torch checkpoint)") from None
+        if "meta.json" in names:
+            return "sog"
+        if "data.pkl" in names:
+            return "gsplat"
+        raise ModelFormatError(f"{path}: a zip that is neither a .sog bundle nor a torch checkpoint")
+    if find_sog_meta(path) is not None:
+        return "sog"
+    # no signature: the extension decides, and that reader names what is wrong with the file
+    by_extension = {".ply": "ply", ".spz": "spz", ".splat": "splat", ".sog": "sog", ".json": "sog",
+                    ".pt": "gsplat", ".pth": "gsplat"}
+    if path.suffix.lower() in by_extension:
+        return by_extension[path.suffix.lower()]
+    raise ModelFormatError(f"{path}: unknown Gaussian model format; supported: {_SUPPORTED}")
+
+
+def read_model(path: str | os.PathLike) -> tuple[GaussianCloud, list[str]]:
+    """Read any supported model file: ``(cloud, notes)``, notes being one-line remarks."""
+    return _collecting(lambda: _readers()[detect_format(path)](path))
+
+
+def write_model(path: str | os.PathLike, cloud: GaussianCloud, **options: Any) -> list[str]:
+    """Write ``cloud`` in the format of ``path``'s extension, atomically; returns the notes.
+
+    ``options`` go to the format's writer (e.g. ``version=2`` for SPZ).
+    """
+    path = Path(path)
+    check_model_extension(path)
+    writer = _writers()[WRITE_EXTENSIONS[path.suffix.lower()]]
+    _, notes = _collecting(lambda: writer(path, cloud, **options))
+    return notes
+
+
+def report_notes(notes: list[str], stream: TextIO | None = None) -> None:
+    """Print each note as one ``note: ...`` line (stderr by default)."""
+    for text in notes:
+        print(f"note: {text}", file=stream or sys.stderr)
+
+
+def model_bytes(path: str | os.PathLike) -> int:
+    """Bytes a model occupies: the file, or for a SOG ``meta.json`` or folder, it and its images."""
+    path = Path(path)
+    from gscodec_shac.io.sog import find_sog_meta
+
+    meta = find_sog_meta(path)
+    if meta is None:
+        return path.stat().st_size
+    import json
+
+    files = {meta}
+    for section in json.loads(meta.read_text(encoding="utf-8")).values():
+        if isinstance(section, dict) and isinstance(section.get("files"), list):
+            files |= {meta.parent / str(name) for name in section["files"]}
+    return sum(f.stat().st_size for f in files if f.is_file())
+
+
+def _collecting(call: Callable[[], Any]) -> tuple[Any, list[str]]:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", FormatNote)
+        result = call()
+    notes = []
+    for item in caught:
+        if issubclass(item.category, FormatNote):
+            notes.append(str(item.message))
+        else:
+            warnings.warn_explicit(item.message, item.category, item.filename, item.lineno)
+    return result, notes
+
+
+def _readers() -> dict[str, Callable[[Any], GaussianCloud]]:
+    from gscodec_shac.io.compressed_ply import read_compressed_ply
+    from gscodec_shac.io.gsplat_ckpt import read_gsplat_checkpoint
+    from gscodec_shac.io.ply import read_ply
+    from gscodec_shac.io.sog import read_sog
+    from gscodec_shac.io.splat import read_splat
+    from gscodec_shac.io.spz import read_spz
+
+    return {"ply": read_ply, "compressed-ply": read_compressed_ply, "spz": read_spz, "splat": read_splat,
+            "sog": read_sog, "gsplat": read_gsplat_checkpoint}
+
+
+def _writers() -> dict[str, Callable[..., None]]:
+    from gscodec_shac.io.gsplat_ckpt import write_gsplat_checkpoint
+    from gscodec_shac.io.ply import write_ply
+    from gscodec_shac.io.sog import write_sog
+    from gscodec_shac.io.splat import write_splat
+    from gscodec_shac.io.spz import write_spz
+
+    return {"ply": write_ply, "spz": write_spz, "splat": write_splat, "sog": write_sog, "gsplat": write_gsplat_checkpoint}
+
+
+def check_model_extension(path: str | os.PathLike) -> None:
+    """Raise before any work when ``path``'s extension names no writable model format."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in WRITE_EXTENSIONS:
+        raise ModelFormatError(
+            f"{path}: cannot write a Gaussian model with extension {suffix or '(none)'!r}; "
+            f"writable: {', '.join(WRITE_EXTENSIONS)}"
+        )
