@@ -77,17 +77,17 @@ def encode_file_to_target(
     preset: str | None = None,
     progress: bool = False,
 ) -> dict[str, Any]:
-    """PLY -> ``.gsc`` at a target (:mod:`.rate_control`): a size (``"2.5MB"``), bits per Gaussian or
+    """Any model file ``read_model`` reads -> ``.gsc`` at a target (:mod:`.rate_control`): a size (``"2.5MB"``), bits per Gaussian or
     PSNR against the uncompressed model on ``cameras`` (any camera file; default: orbit views).
 
     Nothing is written when the target cannot be reached (:class:`TargetUnreachableError`).
     """
     from gscodec_shac.io.cameras import load_cameras
-    from gscodec_shac.io.ply import read_ply
+    from gscodec_shac.io.models import read_model
 
     tic = time.perf_counter()
     _check_output_dir(out_gsc)
-    cloud = read_ply(in_ply)
+    cloud, notes = read_model(in_ply)
     target = target or make_target(cloud.num_gaussians, size=size, bpg=bpg, psnr=psnr)
     views = load_cameras(cameras) if cameras is not None else None
     controller = RateController(cloud, template, views, up=up, progress=progress,
@@ -106,6 +106,7 @@ def encode_file_to_target(
         "seconds": time.perf_counter() - tic,
         "rate_control": outcome.summary(),
         "sizes": outcome.stream.attribute_sizes(),
+        "notes": notes,
     }
 
 

@@ -116,6 +116,7 @@ def _run_to_target(args: argparse.Namespace) -> int:
     from gscodec_shac.codec.rate_control import TEMPLATE
     from gscodec_shac.commands._options import comma_floats
     from gscodec_shac.errors import GscodecError
+    from gscodec_shac.io.models import report_notes
 
     fixed = [flag for flag, value in (("--sh", args.sh), ("--sort", args.sort), ("--seed", args.seed)) if value is not None]
     fixed += ["--" + f.replace("_", "-") for f in stage_options() if getattr(args, f) is not None]
@@ -127,6 +128,7 @@ def _run_to_target(args: argparse.Namespace) -> int:
         template=args.rate_point or TEMPLATE, cameras=args.cameras, up=tuple(comma_floats(args.up, "--up")),
         preset=args.preset, progress=not args.quiet and sys.stderr.isatty(),
     )
+    report_notes(summary["notes"])
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0
