@@ -266,3 +266,28 @@ def test_demo_command_end_to_end(tmp_path, capsys):
         assert (out / name).is_file(), name
     rows = load_results(out)
     assert len(rows) == 8 and all(r["status"] == "ok" and r["psnr_gt"] > 20 for r in rows)
+
+
+def test_auto_recipe_runs_once_per_target_and_meets_it(tmp_path):
+    """The rate controller as a sweep method: one row per target, each file at most its size."""
+    methods = [{"name": "auto", "recipe": "auto", "bpg": [200, 320]}]
+    spec = parse_sweep(tiny_spec(tmp_path, methods=methods, sort=None), source="auto", base=tmp_path)
+    outcome = run_sweep(spec, tmp_path / "out", executor="serial", threads=1, progress=False)
+    rows = {r["rate_point"]: r for r in outcome.rows}
+    assert sorted(rows) == ["bpg-200", "bpg-320"] and all(r["status"] == "ok" for r in rows.values())
+    for label, row in rows.items():
+        target = float(label.split("-")[1])
+        assert 0.97 * target <= float(row["bits_per_gaussian"]) <= target
+    assert float(rows["bpg-320"]["psnr_ref"]) > float(rows["bpg-200"]["psnr_ref"])
+
+
+@pytest.mark.parametrize("params, message", [
+    ({"bpg": [100], "psnr": [30]}, "exactly one list of targets"),
+    ({"sizes": ["2 parsecs"]}, "sizes[0]"),
+    ({"bpg": []}, "non-empty list"),
+])
+def test_auto_recipe_parameters_are_checked(tmp_path, params, message):
+    data = tiny_spec(tmp_path, methods=[{"name": "auto", "recipe": "auto", **params}])
+    with pytest.raises(SweepSpecError) as info:
+        parse_sweep(data, source="bad.yaml", base=tmp_path)
+    assert message in str(info.value)

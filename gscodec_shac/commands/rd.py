@@ -33,7 +33,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from gscodec_shac.errors import GscodecError
-    from gscodec_shac.rd.methods import rate_points_for
+    from gscodec_shac.rd.methods import points_for
     from gscodec_shac.rd.report import write_report
     from gscodec_shac.rd.spec import load_sweep
     from gscodec_shac.rd.sweep import run_sweep
@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
         count = 0
         for scene in spec.scenes:
             for method in spec.methods:
-                for point in rate_points_for(method.recipe, spec.rate_points):
+                for point in points_for(method, spec.rate_points):
                     print(f"{scene.name}\t{method.name}\t{point}")
                     count += 1
         print(f"{count} runs ({len(spec.scenes)} scenes x {len(spec.methods)} methods)")

@@ -70,6 +70,8 @@ class RunContext:
     work_dir: Path  # scratch files of this run
     fault_dir: Path  # attempt counters of the fault recipe
     key: str
+    label: str = ""  # the rate-point label of this run (a rate point, NATIVE or a target)
+    calibration_views: Callable[[], list] = list  # the scene's views that are not test views (rate control)
 
 
 class Recipe(ABC):
@@ -91,6 +93,10 @@ class Recipe(ABC):
     def skip_reason(self, params: dict[str, Any], scene: str) -> str | None:
         """Why this method cannot run on ``scene`` here (recorded as a skipped row), or None."""
         return None
+
+    def points(self, params: dict[str, Any], rate_points: tuple[str, ...]) -> tuple[str, ...]:
+        """The rate-point labels the method runs at: the sweep's rate points (``native`` for external formats)."""
+        return (NATIVE,) if self.external else rate_points
 
     @abstractmethod
     def run(self, ctx: RunContext, params: dict[str, Any]) -> Outcome:
@@ -193,6 +199,80 @@ class Lst(StageRecipe):
         return outcome
 
 
+class Auto(Recipe):
+    """SHAC-auto: the rate controller at each listed target (``bpg``, ``sizes`` or ``psnr``).
+
+    Runs once per target (labels ``bpg-120``, ``size-2.5MB``, ``psnr-35``), not per rate point;
+    the controller calibrates on the scene's views that are not test views (fitted once per
+    scene and worker process); ``encode_s`` includes that fit.
+    """
+
+    name = "auto"
+    _KINDS = {"bpg": "bpg", "sizes": "size", "psnr": "psnr"}
+
+    def check(self, raw: dict[str, Any], base: Path) -> dict[str, Any]:
+        from gscodec_shac.codec.rate_control import TEMPLATE, parse_size
+
+        self.where.only(raw, (*self._KINDS, "template"))
+        given = [k for k in self._KINDS if k in raw]
+        if len(given) != 1:
+            raise self.where.error("", "give exactly one list of targets: bpg, sizes or psnr")
+        kind = given[0]
+        values = self.where.sequence(raw[kind], kind)
+        for i, value in enumerate(values):
+            if kind == "sizes":
+                try:
+                    parse_size(value)
+                except GscodecError as exc:
+                    raise self.where.error(f"{kind}[{i}]", str(exc)) from None
+            else:
+                self.where.number(value, f"{kind}[{i}]", 0.0, 1e6, open_lo=True)
+        template = raw.get("template", TEMPLATE)
+        self.where.string(template, "template")
+        return {kind: list(values), "template": template}
+
+    def points(self, params: dict[str, Any], rate_points: tuple[str, ...]) -> tuple[str, ...]:
+        kind = next(k for k in self._KINDS if k in params)
+        return tuple(f"{self._KINDS[kind]}-{value:g}" if kind != "sizes" else f"size-{value}" for value in params[kind])
+
+    def run(self, ctx: RunContext, params: dict[str, Any]) -> Outcome:
+        from gscodec_shac.codec import Decoder
+        from gscodec_shac.codec.rate_control import make_target
+
+        cloud = ctx.load_cloud()
+        kind, _, value = ctx.label.partition("-")
+        target = make_target(cloud.num_gaussians, size=value if kind == "size" else None,
+                             bpg=float(value) if kind == "bpg" else None, psnr=float(value) if kind == "psnr" else None)
+        tic = time.perf_counter()
+        controller, fitted_s = _fitted_controller(ctx, params["template"])
+        outcome = controller.encode(target)
+        data = outcome.stream.to_bytes()
+        encode_s = time.perf_counter() - tic + fitted_s
+        tic = time.perf_counter()
+        decoded = Decoder(workers=ctx.threads).decode(data)
+        decode_s = time.perf_counter() - tic
+        extra = {"rate_control": outcome.summary(), "fit_s": round(fitted_s, 3),
+                 "sh_features": (outcome.stream.header.get("sh") or {}).get("features")}
+        return Outcome(decoded, len(data), dict(outcome.stream.attribute_sizes()), encode_s, decode_s, extra)
+
+
+_CONTROLLERS: dict[tuple, tuple[Any, float]] = {}
+
+
+def _fitted_controller(ctx: RunContext, template: str) -> tuple[Any, float]:
+    """One fitted rate controller per (scene file, template, preset) in this process, and the seconds its fit took."""
+    from gscodec_shac.codec.rate_control import RateController
+
+    key = (str(ctx.ply_path), template, ctx.preset, ctx.threads)
+    if key not in _CONTROLLERS:
+        tic = time.perf_counter()
+        controller = RateController(ctx.load_cloud(), template, ctx.calibration_views() or None, workers=ctx.threads,
+                                    codec_options={"preset": ctx.preset} if ctx.preset else None).fit()
+        _CONTROLLERS.clear()  # keep one scene's controller at a time
+        _CONTROLLERS[key] = (controller, time.perf_counter() - tic)
+    return _CONTROLLERS[key]
+
+
 class Fault(Recipe):
     """Fails on purpose (tests of retries and failure records); then behaves as ``baseline``."""
 
@@ -287,13 +367,13 @@ class Sog(_External):
 
 
 RECIPES: Registry[Recipe] = Registry("recipe", __name__, (), error=MethodError)
-for _recipe in (Lst(), Spz(), Sog(), Fault()):
+for _recipe in (Lst(), Auto(), Spz(), Sog(), Fault()):
     RECIPES.register(_recipe)
 for _stage in STAGES.names():  # every other stage: a plain stage recipe ("none" is the baseline)
     if _stage not in [getattr(r, "stage", None) for _, r in RECIPES.items()]:
         RECIPES.register(StageRecipe("baseline" if _stage == "none" else _stage, _stage))
 
 
-def rate_points_for(recipe: str, rate_points: tuple[str, ...]) -> tuple[str, ...]:
-    """The rate points a method runs at (``native`` only for external formats)."""
-    return (NATIVE,) if RECIPES.get(recipe).external else rate_points
+def points_for(method: Any, rate_points: tuple[str, ...]) -> tuple[str, ...]:
+    """The rate-point labels a sweep method (a :class:`~gscodec_shac.rd.spec.MethodSpec`) runs at."""
+    return RECIPES.get(method.recipe).points(method.params, rate_points)

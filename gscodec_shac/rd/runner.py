@@ -123,7 +123,7 @@ def execute_run(task: RunTask) -> dict[str, Any]:
 def _run_once(task: RunTask) -> dict[str, Any]:
     from gscodec_shac.io.ply import read_ply
     from gscodec_shac.metrics import load_lpips, psnr, ssim
-    from gscodec_shac.rd.scenes import evaluation_views, render_all
+    from gscodec_shac.rd.scenes import calibration_views, evaluation_views, render_all
 
     out_dir = Path(task.out_dir)
     cache_dir = task.scene.cache_dir(out_dir)
@@ -139,7 +139,8 @@ def _run_once(task: RunTask) -> dict[str, Any]:
         scene=task.scene.spec.name, load_cloud=load_cloud, ply_path=Path(task.scene.ply), rate_point=task.rate_point,
         sort=task.settings.sort, preset=task.settings.preset, threads=task.threads,
         cache_dir=cache_dir if task.settings.cache_sort else None, work_dir=work_dir,
-        fault_dir=out_dir / "cache" / "faults", key=task.key,
+        fault_dir=out_dir / "cache" / "faults", key=task.key, label=task.rate_point_name,
+        calibration_views=lambda: calibration_views(task.scene),
     )
     try:
         outcome = RECIPES.get(task.method.recipe).run(ctx, task.method.params)

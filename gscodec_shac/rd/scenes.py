@@ -202,6 +202,12 @@ def test_cameras(scene: PreparedScene) -> list[Camera]:
     return test
 
 
+def calibration_views(scene: PreparedScene) -> list[Camera]:
+    """The scene's cameras that are not test views (all of them when every camera is a test view)."""
+    train, test = test_split(load_cameras(scene.cameras), scene.spec.test_every)
+    return train or test
+
+
 def ground_truth(scene: PreparedScene, cameras: list[Camera]) -> list[np.ndarray] | None:
     """The test views' images, resized to the cameras (INTER_AREA); None without an image folder."""
     from gscodec_shac.metrics import load_image

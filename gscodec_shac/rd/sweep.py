@@ -29,7 +29,7 @@ from gscodec_shac.errors import GscodecError
 from gscodec_shac.atomic import write_json
 from gscodec_shac.rd.cache import DURABLE
 from gscodec_shac.rd.executors import Executor, LocalExecutor, SerialExecutor
-from gscodec_shac.rd.methods import NATIVE, rate_points_for
+from gscodec_shac.rd.methods import NATIVE, points_for
 from gscodec_shac.rd.results import ResultStore
 from gscodec_shac.rd.runner import RunTask, failed_row
 from gscodec_shac.rd.scenes import PreparedScene, prepare_scene
@@ -65,7 +65,7 @@ def plan(spec: SweepSpec, scenes: dict[str, PreparedScene], out_dir: Path, threa
     for scene in spec.scenes:
         prepared = scenes.get(scene.name)
         for method in spec.methods:
-            for ref in rate_points_for(method.recipe, spec.rate_points):
+            for ref in points_for(method, spec.rate_points):
                 point = points.get(ref)
                 settings_hash = stable_hash({
                     "scene": prepared.fingerprint if prepared else scene.to_json(),
