@@ -19,6 +19,7 @@ EXPECTED = {
     "gsplat_png": ["default"],
     "shac_recommended": ["rp1", "rp2", "rp3", "rp4"],
     "shac_auto": ["template"],
+    "shac_ladder": [f"rp{i}" for i in range(1, 10)],
 }
 # opacity, rotation, scale, SH DC, SH AC (one QP or one per degree)
 MPEG = {"rp01": (22, 17, 12, 7, (32, 37, 42)), "rp02": (17, 7, 12, 7, (22, 27, 32)),
@@ -172,3 +173,13 @@ def test_overrides():
     assert fast.sort.method == "morton" and fast.sort.seed == 3
     with pytest.raises(RatePointError, match="unknown SH stage"):
         point.with_overrides(sh_stage="wavelet")
+
+
+def test_the_ladder_spans_the_rates_monotonically():
+    """Nine points, every QP non-increasing and the position bits non-decreasing along the ladder."""
+    points = [load_rate_point(f"shac_ladder:rp{i}") for i in range(1, 10)]
+    for name in ("opacity", "rotation", "scale", "sh_dc", "sh_features"):
+        qps = [p.attributes[name].qp for p in points]
+        assert qps == sorted(qps, reverse=True), name
+    bits = [p.attributes["positions"].bits for p in points]
+    assert bits == sorted(bits) and bits[0] == 10 and bits[-1] == 16 and all(p.positions_as_set for p in points)
