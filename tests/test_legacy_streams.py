@@ -6,6 +6,11 @@ stay forever: a decoder change that alters one value of one of them fails here. 
 newest version, re-encoding the same inputs with the same settings must give the same
 bytes (golden hashes), unless a grid codec library of a different version is installed
 (the test then says so and skips the hash comparison).
+
+Every decoded value is compared bit for bit, except the outputs of an SH stage's float32
+matrix product (SHAC-PCA's inverse), which must agree to within 4 float32 units in the
+last place of the array's largest value: a BLAS may sum the products in another order
+(another CPU, another memory layout), and the decoder is free to choose the fastest one.
 """
 
 from __future__ import annotations
@@ -25,6 +30,8 @@ FIXTURES = Path(__file__).parent / "fixtures" / "streams"
 VERSIONS = sorted((p for p in FIXTURES.glob("v*") if p.is_dir()), key=lambda p: tuple(map(int, p.name[1:].split("."))))
 CASES = [(folder, name) for folder in VERSIONS for name in json.loads((folder / "manifest.json").read_text())["cases"]]
 ARRAYS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
+#: Arrays that come out of a stage's matrix product, by SH stage.
+PRODUCTS = {"pca": ("sh_rest", "sh_dc")}
 
 
 def _manifest(folder: Path) -> dict:
@@ -36,11 +43,16 @@ def test_legacy_stream_decodes_to_the_stored_arrays(folder, name):
     data = (folder / f"{name}.gsc").read_bytes()
     assert hashlib.sha256(data).hexdigest() == _manifest(folder)["cases"][name]["sha256"]
     cloud = Decoder(workers=2).decode(data)
+    products = PRODUCTS.get(_manifest(folder)["cases"][name]["sh"], ())
     with np.load(folder / f"{name}.npz") as expected:
         for key in ARRAYS:
-            got = getattr(cloud, key)
-            assert got.dtype == expected[key].dtype and got.shape == expected[key].shape, key
-            assert got.tobytes() == expected[key].tobytes(), f"{name}: {key} changed"
+            got, want = getattr(cloud, key), expected[key]
+            assert got.dtype == want.dtype and got.shape == want.shape, key
+            if key in products:
+                ulp = np.spacing(np.float32(np.abs(want).max()))
+                assert np.abs(got - want).max() <= 4 * ulp, f"{name}: {key} changed beyond float32 rounding"
+            else:
+                assert got.tobytes() == want.tobytes(), f"{name}: {key} changed"
 
 
 NEWEST = VERSIONS[-1]

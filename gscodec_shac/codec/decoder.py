@@ -235,12 +235,12 @@ def _assemble(entry: dict, decoded: list, shape: tuple[int, int], cells: np.ndar
     split = (parts["all"] == 0) & (parts["hi"] == 1) & (parts["lo"] == 1)
     if not np.all(whole | split):
         raise BitstreamError("corrupt .gsc file: an attribute's chunks do not cover each channel exactly once")
-    rows = occupied(q.reshape(count, -1), cells)
     if "quantizer" in entry:
         quantizer = qz.Quantizer.from_json(_object(entry["quantizer"], "quantizer"))
         if quantizer.lo.shape != (count,):
             raise BitstreamError("corrupt .gsc file: quantiser ranges do not match the channel count")
-        return quantizer.dequantize(rows)
+        return quantizer.dequantize_cells(q.reshape(count, -1), cells)
+    rows = occupied(q.reshape(count, -1), cells)
     bits = HEADER.integer(entry.get("integer_bits"), "integer_bits", 1, 16)
     if rows.size and int(rows.max()) >= 1 << bits:
         raise BitstreamError(f"corrupt .gsc file: integer attribute exceeds {bits} bits")

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from gscodec_shac.errors import ValidationError
@@ -181,6 +182,23 @@ class Quantizer:
             out[start : start + _BLOCK_ROWS] = block
         return out
 
+    def tables(self) -> np.ndarray:
+        """(C, 2^bits) float32: the reconstruction of every code, computed in float64 per channel."""
+        codes = np.arange(self.levels + 1, dtype=np.float64)
+        return (self.lo.astype(np.float64)[:, None] + codes[None, :] * self.step[:, None]).astype(np.float32)
+
+    def dequantize_cells(self, planes: np.ndarray, cells: np.ndarray) -> np.ndarray:
+        """(C, H*W) coded planes -> (N, C) float32 reconstructions of the ``cells`` (a column-major view).
+
+        The same values as ``dequantize(planes[:, cells].T)``, gathered and looked up in one
+        parallel pass over the channels.
+        """
+        if planes.shape[0] != self.lo.shape[0]:
+            raise ValidationError(f"quantiser has {self.lo.shape[0]} channels, the planes {planes.shape[0]}")
+        out = np.empty((planes.shape[0], cells.size), dtype=np.float32)
+        _gather_lookup(np.ascontiguousarray(planes), np.ascontiguousarray(cells, dtype=np.int64), self.tables(), out)
+        return out.T
+
     def dequantize(self, q: np.ndarray) -> np.ndarray:
         """(N, C) integers -> (N, C) float32 reconstructions ``lo + q * step`` (a column-major view).
 
@@ -239,3 +257,13 @@ def split_planes(values: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]
 def join_planes(high: np.ndarray, low: np.ndarray) -> np.ndarray:
     """Inverse of :func:`split_planes`."""
     return (np.asarray(high, dtype=np.uint16) << 8) | np.asarray(low, dtype=np.uint16)
+
+
+@numba.njit(cache=True, parallel=True)
+def _gather_lookup(planes: np.ndarray, cells: np.ndarray, tables: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    """out[c, i] = tables[c, min(planes[c, cells[i]], last code)] (codes above the last one clip, as np.take does)."""
+    last = tables.shape[1] - 1
+    for c in numba.prange(planes.shape[0]):
+        for i in range(cells.size):
+            code = planes[c, cells[i]]
+            out[c, i] = tables[c, code if code <= last else last]
