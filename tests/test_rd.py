@@ -291,3 +291,15 @@ def test_auto_recipe_parameters_are_checked(tmp_path, params, message):
     with pytest.raises(SweepSpecError) as info:
         parse_sweep(data, source="bad.yaml", base=tmp_path)
     assert message in str(info.value)
+
+
+def test_sort_cache_keeps_set_coded_grids_of_different_bit_depths_apart(tmp_path, small_cloud):
+    """Set-coded positions order the grid by their quantised Morton codes: each bit depth its own order."""
+    from gscodec_shac.codec import Encoder
+    from gscodec_shac.rd.sortcache import cached_grid_order
+
+    for point in ("shac_ladder:rp1", "shac_ladder:rp2"):
+        encoder = Encoder(point, sh_stage="none")
+        grid, _, _ = cached_grid_order(encoder, small_cloud, tmp_path)
+        assert encoder.encode(small_cloud, grid=grid).to_bytes() == Encoder(point, sh_stage="none").encode(small_cloud).to_bytes()
+    assert len(list(tmp_path.glob("sort-*.npz"))) == 2

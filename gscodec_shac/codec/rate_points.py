@@ -140,6 +140,13 @@ class RatePoint:
         """Positions coded as a set, the grid order following from them (layout ``set``)."""
         return self.attributes["positions"].layout == "set"
 
+    def grid_settings(self) -> dict[str, Any]:
+        """Everything the grid order depends on (besides the cloud): pruning, and the sort settings
+        or, for set-coded positions, their bit depth."""
+        if self.positions_as_set:
+            return {"min_opacity": self.min_opacity, "positions": self.attributes["positions"].to_json()}
+        return {"min_opacity": self.min_opacity, "sort": self.sort.to_json()}
+
     def with_overrides(
         self,
         *,

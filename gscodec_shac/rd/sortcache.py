@@ -22,7 +22,7 @@ from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.atomic import write_npz
 from gscodec_shac.rd.cache import DURABLE, file_lock
 
-_CACHE_VERSION = "sortcache-2"
+_CACHE_VERSION = "sortcache-3"
 
 
 def cloud_digest(cloud: GaussianCloud) -> str:
@@ -40,8 +40,7 @@ def cached_grid_order(encoder: Encoder, cloud: GaussianCloud, cache_dir: str | P
     when it was computed (now or by the earlier run).
     """
     cache_dir = Path(cache_dir)
-    point = encoder.rate_point
-    settings = json.dumps({"sort": point.sort.to_json(), "min_opacity": point.min_opacity}, sort_keys=True)
+    settings = json.dumps(encoder.rate_point.grid_settings(), sort_keys=True)
     key = hashlib.sha256(f"{_CACHE_VERSION}|{cloud_digest(cloud)}|{settings}".encode()).hexdigest()[:20]
     path = cache_dir / f"sort-{key}.npz"
     with file_lock(cache_dir / f"sort-{key}.lock"):
