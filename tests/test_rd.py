@@ -261,11 +261,16 @@ def test_demo_command_end_to_end(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "-n", "1000", "--workers", "1", "--preset", "ultrafast", "-q"]) == 0
     text = capsys.readouterr().out
-    assert "shac-pca-er0.99 vs baseline" in text and "demo finished" in text
+    assert "shac-pca-er0.97 vs baseline" in text and "demo finished" in text
     for name in ("results.csv", "results.json", "bd_table.md", "bd_table.json", "report/rd_synthetic.png"):
         assert (out / name).is_file(), name
     rows = load_results(out)
-    assert len(rows) == 8 and all(r["status"] == "ok" and r["psnr_gt"] > 20 for r in rows)
+    fixed = [r for r in rows if r["method"] != "shac-auto"]
+    assert len(fixed) == 8 and all(r["status"] == "ok" and r["psnr_gt"] > 20 for r in fixed)
+    auto = [r for r in rows if r["method"] == "shac-auto"]
+    # 1,000 Gaussians cannot go as low as 40 bits each (side information): those targets are skipped
+    assert len(auto) == 4 and any(r["status"] == "ok" for r in auto)
+    assert all(r["status"] == "ok" or "smallest file" in r["error"] for r in auto)
 
 
 def test_auto_recipe_runs_once_per_target_and_meets_it(tmp_path):

@@ -43,6 +43,10 @@ class MethodError(GscodecError):
     """A method's parameters are invalid."""
 
 
+class RunSkipped(GscodecError):
+    """A run that cannot happen on this scene (recorded as a skipped row with this reason)."""
+
+
 @dataclass
 class Outcome:
     """What a recipe hands back: the decoded model and what it cost."""
@@ -237,7 +241,7 @@ class Auto(Recipe):
 
     def run(self, ctx: RunContext, params: dict[str, Any]) -> Outcome:
         from gscodec_shac.codec import Decoder
-        from gscodec_shac.codec.rate_control import make_target
+        from gscodec_shac.codec.rate_control import TargetUnreachableError, make_target
 
         cloud = ctx.load_cloud()
         kind, _, value = ctx.label.partition("-")
@@ -245,7 +249,10 @@ class Auto(Recipe):
                              bpg=float(value) if kind == "bpg" else None, psnr=float(value) if kind == "psnr" else None)
         tic = time.perf_counter()
         controller, fitted_s = _fitted_controller(ctx, params["template"])
-        outcome = controller.encode(target)
+        try:
+            outcome = controller.encode(target)
+        except TargetUnreachableError as exc:
+            raise RunSkipped(str(exc)) from None
         data = outcome.stream.to_bytes()
         encode_s = time.perf_counter() - tic + fitted_s
         tic = time.perf_counter()

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from gscodec_shac.rd.methods import NATIVE, RECIPES, RunContext
+from gscodec_shac.rd.methods import NATIVE, RECIPES, RunContext, RunSkipped
 from gscodec_shac.rd.scenes import PreparedScene
 from gscodec_shac.rd.spec import EvalSettings, MethodSpec
 
@@ -112,6 +112,8 @@ def execute_run(task: RunTask) -> dict[str, Any]:
             row = _run_once(task)
             row["attempts"] = attempt
             return row
+        except RunSkipped as exc:
+            return failed_row(task, str(exc), attempt, status="skipped")
         except Exception as exc:  # noqa: BLE001 - every failure becomes a recorded row
             error = f"{type(exc).__name__}: {exc}".strip()
             last = traceback.extract_tb(exc.__traceback__)[-1:] if exc.__traceback__ else []
