@@ -7,11 +7,12 @@ import time
 from pathlib import Path
 from typing import Any
 
+from gscodec_shac.atomic import inputs_protected
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.decoder import Decoder
 from gscodec_shac.codec.encoder import Encoder
 from gscodec_shac.codec.rate_points import RatePoint
-from gscodec_shac.errors import GscodecError
+from gscodec_shac.errors import GscodecError, OutputError
 
 
 def encode_file(
@@ -35,13 +36,14 @@ def encode_file(
     from gscodec_shac.io.ply import read_ply
 
     tic = time.perf_counter()
-    _check_output_dir(out_gsc)
+    _check_output_dir(out_gsc, in_ply)
     encoder = Encoder(rate_point, sh_stage=sh, sort=sort, seed=seed,
                       sh_params={k: v for k, v in stage_params.items() if v is not None},
                       codec_options={"preset": preset} if preset else None, progress=progress)
     cloud = read_ply(in_ply)
     stream = encoder.encode(cloud)
-    size = stream.write(out_gsc)
+    with inputs_protected(in_ply):
+        size = stream.write(out_gsc)
     return {
         "input": str(in_ply),
         "output": str(out_gsc),
@@ -62,10 +64,11 @@ def decode_file(in_gsc: str | os.PathLike, out_ply: str | os.PathLike, *, progre
     from gscodec_shac.io.ply import write_ply
 
     tic = time.perf_counter()
-    _check_output_dir(out_ply)
+    _check_output_dir(out_ply, in_gsc)
     stream = Bitstream.read(in_gsc)
     cloud = Decoder(progress=progress).decode(stream)
-    write_ply(out_ply, cloud)
+    with inputs_protected(in_gsc):
+        write_ply(out_ply, cloud)
     return {
         "input": str(in_gsc),
         "output": str(out_ply),
@@ -76,8 +79,12 @@ def decode_file(in_gsc: str | os.PathLike, out_ply: str | os.PathLike, *, progre
     }
 
 
-def _check_output_dir(path: str | os.PathLike) -> None:
-    """Fail before the work, not after it, when the output cannot be written."""
+def _check_output_dir(path: str | os.PathLike, source: str | os.PathLike) -> None:
+    """Fail before the work, not after it, when the output cannot be written (the write checks again)."""
     directory = Path(path).parent
     if not directory.is_dir():
         raise GscodecError(f"{path}: output directory {directory} does not exist")
+    if Path(path).is_dir():
+        raise OutputError(f"{path}: the output path is a directory; give a file name")
+    if Path(path).exists() and Path(source).exists() and os.path.samefile(path, source):
+        raise OutputError(f"{path}: is the input {source}; refusing to write over an input (even with --force)")

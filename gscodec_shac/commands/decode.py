@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from gscodec_shac.commands._options import add_force
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -15,12 +17,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("input", help="input .gsc")
     parser.add_argument("output", help="output .ply")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+    add_force(parser)
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from gscodec_shac.atomic import check_output
     from gscodec_shac.codec import decode_file
 
+    check_output(args.output, force=args.force, inputs=[args.input])
     summary = decode_file(args.input, args.output, progress=not args.quiet and sys.stderr.isatty())
     print(
         f"wrote {summary['output']}: {summary['num_gaussians']:,} Gaussians, SH degree {summary['sh_degree']}, "
