@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import re
-from typing import Any
 
 #: The largest ``.gsc`` JSON header read (a real one is 4-20 KiB).
 MAX_HEADER_BYTES = 1 << 20
@@ -27,6 +26,9 @@ MAX_GAUSSIANS = 1 << 26
 #: The largest image side and pixel count a camera may ask for (renders, fine-tuning targets).
 MAX_IMAGE_SIDE = 16384
 MAX_IMAGE_PIXELS = 1 << 26
+#: Bytes the CPU renderer needs per pixel (float64 colour, transmittance, depth, the float32
+#: image and alpha, tile tables); renders larger than the memory budget are refused.
+RENDER_BYTES_PER_PIXEL = 128
 #: Environment variable that caps the memory budget (bytes, or with a K/M/G/T suffix).
 MEMORY_ENV = "GSCODEC_MAX_MEMORY"
 
@@ -73,8 +75,10 @@ def memory_budget() -> int:
     if override:
         try:
             candidates.append(parse_size(override))
-        except ValueError:
-            pass
+        except ValueError as exc:
+            from gscodec_shac.errors import GscodecError
+
+            raise GscodecError(f"${MEMORY_ENV}: {exc}") from None
     return min(c for c in candidates if c is not None)
 
 
@@ -124,16 +128,6 @@ def _mapped_bytes() -> int:
             return int(handle.read().split()[0]) * int(os.sysconf("SC_PAGE_SIZE"))
     except (OSError, ValueError, IndexError):
         return 0
-
-
-def describe() -> dict[str, Any]:
-    """The limits as a dict (docs, ``--help``)."""
-    return {name: value for name, value in globals().items() if name.startswith("MAX_")}
-
-
-#: Bytes the CPU renderer needs per pixel (float64 colour, transmittance, depth, the float32
-#: image and alpha, tile tables); renders larger than the memory budget are refused.
-RENDER_BYTES_PER_PIXEL = 128
 
 
 def check_render_memory(width: int, height: int, what: str) -> None:

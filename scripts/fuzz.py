@@ -21,6 +21,7 @@ the exit status is 1 when any case crashed, hung or died.
 from __future__ import annotations
 
 import argparse
+import json
 import multiprocessing as mp
 import os
 import signal
@@ -235,7 +236,7 @@ def _order(family: str) -> int:
 def markdown(table: list[dict[str, Any]], config: dict[str, Any]) -> str:
     cols = ("cases", "valid", "clean_errors", "tracebacks", "MemoryError", "RecursionError", "hangs", "died")
     lines = [
-        "| family | target | cases | valid decodes | clean errors | tracebacks | MemoryError | RecursionError | "
+        "| family | target | cases | valid | clean errors | tracebacks | MemoryError | RecursionError | "
         "hangs | died | max s | max peak MiB |",
         "|---|---|" + "---:|" * 10,
     ]
@@ -265,7 +266,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--memory", type=int, default=2048, help="MiB of address space per case (default 2048)")
     parser.add_argument("--no-truncations", action="store_true", help="skip the every-offset truncations")
     parser.add_argument("--targets", nargs="+", default=["decode", "info"], choices=("decode", "info"))
+    parser.add_argument("--from-json", metavar="FUZZ_JSON", help="only rewrite the table of an earlier run's fuzz.json")
     args = parser.parse_args(argv)
+    if args.from_json:
+        record = json.loads(Path(args.from_json).read_text())
+        text = markdown(record["table"], record["config"])
+        from gscodec_shac.atomic import write_atomic
+
+        write_atomic(Path(args.from_json).with_name("fuzz.md"), text)
+        print(text)
+        return 0
     os.environ.setdefault("MALLOC_ARENA_MAX", "2")  # glibc arenas reserve 64 MiB of address space per thread
 
     from gscodec_shac import fuzz

@@ -14,7 +14,7 @@ from gscodec_shac.codec import Decoder, Encoder
 from gscodec_shac.codec.container import PREAMBLE_SIZE, Bitstream
 from gscodec_shac.codec.header import read_header
 from gscodec_shac.commands.info import describe_gsc
-from gscodec_shac.errors import BitstreamError, MemoryLimitError
+from gscodec_shac.errors import BitstreamError, GscodecError, MemoryLimitError
 from gscodec_shac.gsplat_compat import ShacCompression
 from gscodec_shac.limits import MAX_HEADER_BYTES
 from gscodec_shac.synthetic import make_synthetic_scene
@@ -164,6 +164,9 @@ def test_the_memory_budget_is_checked_before_allocating(encoded, monkeypatch):
         Decoder().decode(encoded)
     monkeypatch.setenv("GSCODEC_MAX_MEMORY", "4G")
     assert Decoder().decode(encoded).num_gaussians == 300
+    monkeypatch.setenv("GSCODEC_MAX_MEMORY", "lots")
+    with pytest.raises(GscodecError, match=r"\$GSCODEC_MAX_MEMORY: 'lots' is not a size such as 512M or 4G"):
+        Decoder().decode(encoded)
 
 
 def test_the_gsplat_drop_in_uses_the_same_validator(tmp_path, encoded):

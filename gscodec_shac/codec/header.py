@@ -38,6 +38,7 @@ from gscodec_shac.codec.grid.base import CODECS
 from gscodec_shac.codec.quantize import Quantizer
 from gscodec_shac.errors import BitstreamError, GscodecError
 from gscodec_shac.limits import MAX_GAUSSIANS
+from gscodec_shac.shac.base import STAGES, ShStage, StageState, stage_from_state
 from gscodec_shac.validate import Where
 
 #: Header checks raise this: "corrupt .gsc file: key 'k': problem".
@@ -152,7 +153,8 @@ class StreamHeader:
 
         The decoded planes (uint16, all held until assembly), each attribute's copies on
         the way to float32 values, the SH reconstruction (float64 where the stage works in
-        it) and the cloud, plus one grid codec's working copies per worker; calibrated on
+        it) and the cloud, plus one grid codec's working copies per worker and the inflated
+        stage state with its arrays (a vq codebook of bytes becomes float32); calibrated on
         real decodes (docs/reliability.md, "Memory").
         """
         n, cells = self.num_gaussians, self.cells
@@ -162,7 +164,8 @@ class StreamHeader:
         codec = 4 * 2 * cells * widest * max(1, min(workers, len(self.chunks)))
         values = n * self.channels * (2 + 4 + 8)
         sh = n * (ac + 3) * (8 + 8 + 4) if self.sh else 0
-        return planes + codec + values + sh + 2 * self.decoded_bytes()
+        state = 6 * sum(self.zlib_sizes.values())
+        return planes + codec + values + sh + state + 2 * self.decoded_bytes()
 
 
 def read_header(stream: Bitstream) -> StreamHeader:
@@ -214,10 +217,8 @@ def read_header(stream: Bitstream) -> StreamHeader:
     )
 
 
-def read_stage(stream: Bitstream, view: StreamHeader):
+def read_stage(stream: Bitstream, view: StreamHeader) -> ShStage:
     """The SH stage rebuilt from ``sh_state``, checked against the header on one row."""
-    from gscodec_shac.shac.base import StageState, stage_from_state
-
     sh = view.sh
     if sh is None:
         raise BitstreamError("corrupt .gsc file: the stream has no SH stage")
@@ -259,8 +260,6 @@ def inflate(chunk: Chunk, raw_size: int) -> bytes:
 
 # ------------------------------------------------------------------ parts
 def _sh_entry(value: Any, degree: int) -> ShEntry | None:
-    from gscodec_shac.shac.base import STAGES
-
     if value is None:
         if degree > 0:
             raise HEADER.error("sh", f"SH degree {degree} needs an SH stage entry, got none")
