@@ -1,23 +1,103 @@
-"""Atomic file output: write a temporary file in the target folder, then rename it.
+"""Atomic file output: the new content appears under its name whole, or not at all.
 
-A reader sees the whole new file or the old one, never a half-written file, and a failed
-write (an exception, Ctrl-C) leaves nothing behind. Every writer of user-facing outputs
-(PLY, ``.gsc``, cameras, checkpoints, sweep results) goes through here.
+Every writer of user-facing outputs (PLY, ``.gsc``, cameras, PNGs, checkpoints, sweep
+results, reports) goes through :func:`atomic_output`, which guarantees, in one place:
+
+* **all or nothing**: a reader sees the old file or the whole new one. The data goes to
+  an unnamed file in the target folder (Linux ``O_TMPFILE``) that is linked under the
+  target name when the block ends, so an exception, Ctrl-C, SIGTERM or even SIGKILL
+  while writing leaves no temporary file. Replacing an existing file links the data
+  under a hidden ``.NAME.*.tmp`` name and renames it over the target, two system calls
+  apart. Where ``O_TMPFILE`` is missing, a named temporary file is written and removed
+  on any error.
+* **the umask**: new files get mode ``0666 & ~umask`` (0644 with the usual umask 022).
+* **inputs stay intact**: a file registered with :func:`protect_inputs` is never written
+  over, whatever the path that names it (links included), ``--force`` or not.
+* **clear errors**: an output path that is a directory, or in a missing folder, raises
+  the caller's error type naming it.
+
+Commands call :func:`check_output` before the work starts, so an existing output is
+refused (unless ``--force``) before minutes of encoding rather than after.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import json
 import os
-import tempfile
+import secrets
+import threading
 from pathlib import Path
-from typing import Any, BinaryIO, Iterator
+from typing import Any, BinaryIO, Iterable, Iterator
 
 import numpy as np
 
-from gscodec_shac.errors import GscodecError
+from gscodec_shac.errors import GscodecError, OutputError
+
+#: Files this process reads and must never write over (see :func:`protect_inputs`).
+_PROTECTED: dict[tuple[int, int], str] = {}
+_UMASK_LOCK = threading.Lock()
+#: OS errors of writing a file that are the environment's, not a bug: reported as one line.
+_WRITE_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO}
+
+
+def protect_inputs(*paths: str | os.PathLike | None) -> None:
+    """Register input files: no atomic output of this process may replace them."""
+    for path in paths:
+        if path is None:
+            continue
+        try:
+            info = os.stat(path)
+        except OSError:
+            continue
+        _PROTECTED[(info.st_dev, info.st_ino)] = str(path)
+
+
+@contextlib.contextmanager
+def inputs_protected(*paths: str | os.PathLike | None) -> Iterator[None]:
+    """:func:`protect_inputs` for the duration of a block (library calls such as ``encode_file``)."""
+    before = dict(_PROTECTED)
+    protect_inputs(*paths)
+    try:
+        yield
+    finally:
+        _PROTECTED.clear()
+        _PROTECTED.update(before)
+
+
+def release_inputs() -> None:
+    """Forget every registered input (the CLI does this after each command)."""
+    _PROTECTED.clear()
+
+
+def check_output(path: str | os.PathLike, *, force: bool = False, inputs: Iterable[str | os.PathLike | None] = (),
+                 what: str = "output") -> Path:
+    """Refuse an output path before the work: a directory, an input (even with ``force``),
+    or an existing file unless ``force``. Registers ``inputs`` with :func:`protect_inputs`."""
+    path = Path(path)
+    protect_inputs(*inputs)
+    if path.is_dir():
+        raise OutputError(f"{path}: the {what} path is a directory; give a file name")
+    _refuse_input(path, OutputError)
+    if path.exists() and not force:
+        raise OutputError(f"{path}: the {what} exists; pass --force to replace it")
+    directory = path.parent if str(path.parent) else Path(".")
+    if not directory.is_dir():
+        raise OutputError(f"{path}: output directory {directory} does not exist")
+    return path
+
+
+def check_outputs(paths: Iterable[str | os.PathLike], *, force: bool = False, what: str = "output") -> None:
+    """:func:`check_output` for several files a command writes into one folder (created later)."""
+    for path in paths:
+        path = Path(path)
+        if path.is_dir():
+            raise OutputError(f"{path}: the {what} path is a directory")
+        _refuse_input(path, OutputError)
+        if path.exists() and not force:
+            raise OutputError(f"{path}: the {what} exists; pass --force to replace it")
 
 
 @contextlib.contextmanager
@@ -35,17 +115,25 @@ def atomic_output(
         directory.mkdir(parents=True, exist_ok=True)
     elif not directory.is_dir():
         raise error(f"{path}: output directory {directory} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+    if path.is_dir():
+        raise error(f"{path}: is a directory, cannot write a file there")
+    _refuse_input(path, error)
     try:
+        fd = _unnamed_file(directory)
+        if fd is None:
+            with _named_output(path, directory, fsync) as handle:
+                yield handle
+            return
         with os.fdopen(fd, "wb") as handle:
             yield handle
+            handle.flush()
             if fsync:
-                handle.flush()
                 os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
+            _refuse_input(path, error)
+            _link_into_place(handle.fileno(), path, directory)
+    except OSError as exc:
+        if exc.errno in _WRITE_ERRORS:
+            raise error(f"{path}: cannot write the file ({exc.strerror})") from None
         raise
 
 
@@ -66,6 +154,88 @@ def write_npz(path: str | os.PathLike, arrays: dict[str, np.ndarray], **options:
     buffer = io.BytesIO()
     np.savez(buffer, **arrays)
     return write_atomic(path, buffer.getvalue(), **options)
+
+
+def umask() -> int:
+    """The process umask, read without changing it where the system allows."""
+    try:
+        with open("/proc/self/status") as handle:
+            for line in handle:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    with _UMASK_LOCK:  # os.umask can only be read by setting it
+        value = os.umask(0o022)
+        os.umask(value)
+    return value
+
+
+# ------------------------------------------------------------------ internals
+def _refuse_input(path: Path, error: type[Exception]) -> None:
+    try:
+        info = os.stat(path)
+    except OSError:
+        return
+    source = _PROTECTED.get((info.st_dev, info.st_ino))
+    if source is not None:
+        raise error(f"{path}: is the input {source}; refusing to write over an input (even with --force)")
+
+
+def _unnamed_file(directory: Path) -> int | None:
+    """An ``O_TMPFILE`` descriptor in ``directory`` (mode 0666 minus the umask), or None where unsupported."""
+    flag = getattr(os, "O_TMPFILE", None)
+    if flag is None or not os.path.isdir("/proc/self/fd"):
+        return None
+    try:
+        return os.open(directory, flag | os.O_WRONLY | getattr(os, "O_CLOEXEC", 0), 0o666)
+    except OSError as exc:
+        if exc.errno in (errno.EOPNOTSUPP, errno.EISDIR, errno.EINVAL, errno.ENOENT):
+            return None
+        raise
+
+
+def _link_into_place(fd: int, path: Path, directory: Path) -> None:
+    """Give the unnamed file ``fd`` the name ``path`` (replacing what is there)."""
+    proc = os.open("/proc/self/fd", os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    try:
+        # linkat(AT_SYMLINK_FOLLOW) through /proc names an O_TMPFILE file (a dir fd makes
+        # os.link use linkat rather than link, which would not follow the magic link).
+        try:
+            os.link(str(fd), path, src_dir_fd=proc, follow_symlinks=True)  # nothing there: one atomic step
+            return
+        except FileExistsError:
+            pass
+        tmp = directory / f".{path.name}.{secrets.token_hex(4)}.tmp"
+        try:
+            os.link(str(fd), tmp, src_dir_fd=proc, follow_symlinks=True)
+            os.replace(tmp, path)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            raise
+    finally:
+        os.close(proc)
+
+
+@contextlib.contextmanager
+def _named_output(path: Path, directory: Path, fsync: bool) -> Iterator[BinaryIO]:
+    """The portable fallback: a named temporary file, removed on any error."""
+    import tempfile
+
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+    try:
+        os.fchmod(fd, 0o666 & ~umask())
+        with os.fdopen(fd, "wb") as handle:
+            yield handle
+            if fsync:
+                handle.flush()
+                os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
 
 
 def _json_default(value: Any) -> Any:

@@ -22,6 +22,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from gscodec_shac.errors import CameraFormatError, ValidationError
+from gscodec_shac.limits import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE
 
 PathLike = str | os.PathLike
 
@@ -60,6 +61,7 @@ class Camera:
         set_(self, "name", str(self.name))
         set_(self, "width", positive_int(self.width, "width", self.name))
         set_(self, "height", positive_int(self.height, "height", self.name))
+        check_image_size(self.width, self.height, self.name)
         for key in ("fx", "fy", "cx", "cy"):
             value = finite_float(getattr(self, key), key, self.name)
             if key in ("fx", "fy") and value <= 0:
@@ -142,6 +144,9 @@ class Camera:
         """
         if not (math.isfinite(factor) and factor > 0):
             raise CameraFormatError(f"camera {self.name!r}: scale factor {factor} is not a positive number")
+        if max(self.width, self.height) * factor > MAX_IMAGE_SIDE + 0.5:
+            raise CameraFormatError(f"camera {self.name!r}: scaled by {factor:g}, the image would exceed "
+                                    f"{MAX_IMAGE_SIDE:,} pixels a side")
         return self.resized(max(1, round(self.width * factor)), max(1, round(self.height * factor)))
 
     def with_image_path(self, image_path: PathLike | None) -> Camera:
@@ -192,11 +197,23 @@ def strip_image_extension(name: str) -> str:
     return stem if dot and stem and "." + ext.lower() in {e.lower() for e in IMAGE_EXTENSIONS} else name
 
 
+def check_image_size(width: int, height: int, name: str) -> None:
+    """Refuse an image larger than :data:`~gscodec_shac.limits.MAX_IMAGE_SIDE` a side or
+    :data:`~gscodec_shac.limits.MAX_IMAGE_PIXELS` in all, before anything is allocated for it."""
+    if width > MAX_IMAGE_SIDE or height > MAX_IMAGE_SIDE or width * height > MAX_IMAGE_PIXELS:
+        raise CameraFormatError(
+            f"camera {name!r}: image size {width}x{height} exceeds the maximum ({MAX_IMAGE_SIDE:,} pixels a side, "
+            f"{MAX_IMAGE_PIXELS:,} pixels in all)"
+        )
+
+
 def positive_int(value: Any, key: str, name: str) -> int:
     """``value`` as an int >= 1, else a CameraFormatError naming camera ``name`` and field ``key``."""
+    if isinstance(value, bool):
+        raise CameraFormatError(f"camera {name!r}: {key} {value!r} is not a number")
     try:
         as_float = float(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise CameraFormatError(f"camera {name!r}: {key} {value!r} is not a number") from None
     if not (math.isfinite(as_float) and as_float == int(as_float) and as_float >= 1):
         raise CameraFormatError(f"camera {name!r}: {key} {value!r} is not a positive integer")

@@ -79,9 +79,12 @@ def load_image(
     """
     import cv2
 
+    from gscodec_shac.limits import check_image_file
+
     path = Path(path)
     if not path.is_file():
         raise ImageError(f"{path}: no such image file")
+    check_image_file(path, ImageError)
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise ImageError(f"{path}: cannot be decoded as an image")

@@ -152,7 +152,8 @@ def test_cli_analyze_writes_json_csv_and_pngs(tmp_path, small_cloud, capsys):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "Average" in capsys.readouterr().out
 
-    assert main(["analyze", str(ply), "--drop-untouched", "--out", str(out)]) == 0
+    assert main(["analyze", str(ply), "--drop-untouched", "--out", str(out)]) == 2  # outputs exist
+    assert main(["analyze", str(ply), "--drop-untouched", "--out", str(out), "--force"]) == 0
     row = json.loads((out / "table.json").read_text())["rows"][0]
     assert row["n_gaussians"] == len(cloud) - 300 and row["scene"] == "scene (touched)"
     assert (out / "correlation_scene_touched.png").is_file()

@@ -337,7 +337,7 @@ def test_sog_errors(tmp_path):
     (tmp_path / "meta.json").write_text('{"id": "plant", "file": "plant.splat"}')
     with pytest.raises(ModelFormatError, match="not a SOG meta.json"):
         read_model(tmp_path / "meta.json")
-    with pytest.raises(ModelFormatError, match="folder without a SOG meta.json"):
+    with pytest.raises(ModelFormatError, match="is a directory without a SOG meta.json"):
         read_model(tmp_path)
 
 

@@ -234,26 +234,27 @@ def test_cli_encode_decode_info(tmp_path, small_cloud, capsys):
     assert main(["info", str(gsc)]) == 0
     text = capsys.readouterr().out
     assert "bits per Gaussian" in text and "sh_state" in text and "paper_table3:rp2" in text
-    assert main(["encode", str(ply), str(gsc), "-r", "gsplat_png", "--sort", "none", "--clusters", "128", "--json"]) == 0
+    assert main(["encode", str(ply), str(gsc), "-r", "gsplat_png", "--sort", "none", "--clusters", "128", "--json",
+                 "--force"]) == 0
     assert '"sh_stage": "vq"' in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(
-    "args, message",
+    "args, message, status",
     [
-        (["encode", "{ply}", "{gsc}", "-r", "paper_table3:rp7"], "no rate point 'rp7'"),
-        (["encode", "{ply}", "{gsc}", "--sh", "none", "--er", "0.9"], "--er applies to --sh pca"),
-        (["encode", "{ply}", "{gsc}", "--sh", "pca", "--components", "99", "--sort", "none"], "n_components=99"),
-        (["encode", "{missing}", "{gsc}"], "no such file"),
-        (["decode", "{ply}", "{gsc}"], "not a .gsc file"),
-        (["encode", "{ply}", "{nodir}"], "does not exist"),
+        (["encode", "{ply}", "{gsc}", "-r", "paper_table3:rp7"], "no rate point 'rp7'", 2),
+        (["encode", "{ply}", "{gsc}", "--sh", "none", "--er", "0.9"], "--er applies to --sh pca", 2),
+        (["encode", "{ply}", "{gsc}", "--sh", "pca", "--components", "99", "--sort", "none"], "n_components=99", 2),
+        (["encode", "{missing}", "{gsc}"], "no such file", 2),
+        (["decode", "{ply}", "{gsc}"], "not a .gsc file", 3),
+        (["encode", "{ply}", "{nodir}"], "does not exist", 2),
     ],
 )
-def test_cli_errors_are_one_line_and_leave_no_file(tmp_path, small_cloud, capsys, args, message):
+def test_cli_errors_are_one_line_and_leave_no_file(tmp_path, small_cloud, capsys, args, message, status):
     ply = tmp_path / "in.ply"
     write_ply(ply, small_cloud)
     names = {"ply": ply, "gsc": tmp_path / "out.gsc", "missing": tmp_path / "missing.ply", "nodir": tmp_path / "no" / "x.gsc"}
-    assert main([a.format(**names) for a in args]) == 2
+    assert main([a.format(**names) for a in args]) == status
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], lines
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in.ply"]

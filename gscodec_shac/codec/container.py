@@ -24,7 +24,11 @@ so a truncated file or trailing bytes are detected before any payload is used.
 
 :meth:`Bitstream.from_bytes` raises exactly one :class:`BitstreamError` for
 anything wrong (foreign file, unknown version, truncation, CRC mismatch,
-malformed table) and allocates nothing larger than the file itself.
+malformed table) and allocates nothing larger than the file itself. The JSON header is at
+most :data:`~gscodec_shac.limits.MAX_HEADER_BYTES` long and
+:data:`~gscodec_shac.limits.MAX_NESTING` levels deep (checked before parsing), without
+NaN, Infinity or repeated keys. What the header says is checked by
+:func:`gscodec_shac.codec.header.read_header` (every reader of a stream calls it).
 """
 
 from __future__ import annotations
@@ -38,7 +42,8 @@ from pathlib import Path
 from typing import Any
 
 from gscodec_shac.atomic import write_atomic
-from gscodec_shac.errors import BitstreamError
+from gscodec_shac.errors import BitstreamError, StreamFileError
+from gscodec_shac.limits import MAX_HEADER_BYTES, MAX_NESTING, json_nesting
 
 MAGIC = b"\x89GSC\r\n\x1a\n"
 #: The newest format this code writes and reads; it reads every older major too.
@@ -50,8 +55,6 @@ FEATURES: dict[str, str] = {
 }
 _PREAMBLE = struct.Struct("<8sHHII")
 PREAMBLE_SIZE = _PREAMBLE.size  # 20
-#: The largest header a decoder reads (a real one is a few KiB).
-MAX_HEADER_BYTES = 16 << 20
 _MAX_CHUNKS = 4096
 
 
@@ -144,12 +147,7 @@ class Bitstream:
         raw_header = data[PREAMBLE_SIZE : PREAMBLE_SIZE + header_len]
         if zlib.crc32(raw_header) != header_crc:
             raise BitstreamError("corrupt .gsc file: header CRC32 mismatch")
-        try:
-            header = json.loads(raw_header.decode("utf-8"))
-        except (UnicodeDecodeError, ValueError):
-            raise BitstreamError("corrupt .gsc file: header is not valid JSON") from None
-        if not isinstance(header, dict):
-            raise BitstreamError("corrupt .gsc file: header is not a JSON object")
+        header = parse_header_json(raw_header)
         table = header.pop("chunks", None)
         features = _check_features(header.pop("features", None) if major >= 2 else None, major)
         entries = _check_table(table)
@@ -181,10 +179,16 @@ class Bitstream:
     @classmethod
     def read(cls, path: str | os.PathLike) -> "Bitstream":
         path = Path(path)
+        if path.is_dir():
+            raise StreamFileError(f"{path}: is a directory, not a .gsc file")
         if not path.is_file():
-            raise BitstreamError(f"{path}: no such file")
+            raise StreamFileError(f"{path}: no such file")
         try:
-            return cls.from_bytes(path.read_bytes())
+            data = path.read_bytes()
+        except OSError as exc:
+            raise StreamFileError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+        try:
+            return cls.from_bytes(data)
         except BitstreamError as exc:
             raise BitstreamError(f"{path}: {exc}") from None
 
@@ -214,6 +218,39 @@ def is_gsc(path: str | os.PathLike) -> bool:
             return handle.read(len(MAGIC)) == MAGIC
     except OSError:
         return False
+
+
+def parse_header_json(raw: bytes) -> dict[str, Any]:
+    """The header object of ``raw`` JSON: nesting checked before parsing (no deep recursion),
+    no NaN/Infinity, no repeated key; one :class:`BitstreamError` otherwise."""
+    depth = json_nesting(raw)
+    if depth > MAX_NESTING:
+        raise BitstreamError(f"corrupt .gsc file: header nests {depth} levels deep (at most {MAX_NESTING})")
+    try:
+        header = json.loads(raw.decode("utf-8"), parse_constant=_no_constant, object_pairs_hook=_unique_keys)
+    except (UnicodeDecodeError, ValueError) as exc:
+        detail = f" ({exc})" if isinstance(exc, _HeaderValueError) else ""
+        raise BitstreamError(f"corrupt .gsc file: header is not valid JSON{detail}") from None
+    if not isinstance(header, dict):
+        raise BitstreamError("corrupt .gsc file: header is not a JSON object")
+    return header
+
+
+class _HeaderValueError(ValueError):
+    """JSON that parses but is not allowed in a header (NaN, a repeated key)."""
+
+
+def _no_constant(name: str) -> Any:
+    raise _HeaderValueError(f"{name} is not a number a header may hold")
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _HeaderValueError(f"key {key!r} appears twice")
+        out[key] = value
+    return out
 
 
 def _check_features(features: Any, major: int) -> set[str]:

@@ -10,12 +10,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+from gscodec_shac.atomic import inputs_protected
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.decoder import Decoder
 from gscodec_shac.codec.encoder import Encoder
 from gscodec_shac.codec.rate_control import TEMPLATE, RateController, Target, make_target
 from gscodec_shac.codec.rate_points import RatePoint
-from gscodec_shac.errors import GscodecError
+from gscodec_shac.errors import GscodecError, OutputError
 
 
 def encode_file(
@@ -40,13 +41,14 @@ def encode_file(
     from gscodec_shac.io.models import read_model
 
     tic = time.perf_counter()
-    _check_output_dir(out_gsc)
+    _check_output_dir(out_gsc, in_ply)
     encoder = Encoder(rate_point, sh_stage=sh, sort=sort, seed=seed,
                       sh_params={k: v for k, v in stage_params.items() if v is not None},
                       codec_options={"preset": preset} if preset else None, progress=progress)
     cloud, notes = read_model(in_ply)
     stream = encoder.encode(cloud)
-    size = stream.write(out_gsc)
+    with inputs_protected(in_ply):
+        size = stream.write(out_gsc)
     return {
         "input": str(in_ply),
         "output": str(out_gsc),
@@ -86,14 +88,15 @@ def encode_file_to_target(
     from gscodec_shac.io.models import read_model
 
     tic = time.perf_counter()
-    _check_output_dir(out_gsc)
+    _check_output_dir(out_gsc, in_ply)
     cloud, notes = read_model(in_ply)
     target = target or make_target(cloud.num_gaussians, size=size, bpg=bpg, psnr=psnr)
     views = load_cameras(cameras) if cameras is not None else None
     controller = RateController(cloud, template, views, up=up, progress=progress,
                                 codec_options={"preset": preset} if preset else None)
     outcome = controller.encode(target)
-    written = outcome.stream.write(out_gsc)
+    with inputs_protected(in_ply, *([cameras] if cameras is not None else [])):
+        written = outcome.stream.write(out_gsc)
     return {
         "input": str(in_ply),
         "output": str(out_gsc),
@@ -115,11 +118,12 @@ def decode_file(in_gsc: str | os.PathLike, out_ply: str | os.PathLike, *, progre
     from gscodec_shac.io.models import check_model_extension, write_model
 
     tic = time.perf_counter()
-    _check_output_dir(out_ply)
+    _check_output_dir(out_ply, in_gsc)
     stream = Bitstream.read(in_gsc)
     check_model_extension(out_ply)
     cloud = Decoder(progress=progress).decode(stream)
-    notes = write_model(out_ply, cloud)
+    with inputs_protected(in_gsc):
+        notes = write_model(out_ply, cloud)
     return {
         "input": str(in_gsc),
         "output": str(out_ply),
@@ -131,8 +135,12 @@ def decode_file(in_gsc: str | os.PathLike, out_ply: str | os.PathLike, *, progre
     }
 
 
-def _check_output_dir(path: str | os.PathLike) -> None:
-    """Fail before the work, not after it, when the output cannot be written."""
+def _check_output_dir(path: str | os.PathLike, source: str | os.PathLike) -> None:
+    """Fail before the work, not after it, when the output cannot be written (the write checks again)."""
     directory = Path(path).parent
     if not directory.is_dir():
         raise GscodecError(f"{path}: output directory {directory} does not exist")
+    if Path(path).is_dir():
+        raise OutputError(f"{path}: the output path is a directory; give a file name")
+    if Path(path).exists() and Path(source).exists() and os.path.samefile(path, source):
+        raise OutputError(f"{path}: is the input {source}; refusing to write over an input (even with --force)")

@@ -12,8 +12,11 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import json
 from pathlib import Path
+
+from gscodec_shac.commands._options import add_force
 
 #: Columns of the printed table: (header, TableRow field, is a fraction).
 PRINTED = (
@@ -45,6 +48,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--drop-untouched", action="store_true",
         help="drop Gaussians whose AC coefficients (f_rest) are all zero before analysing",
     )
+    add_force(parser)
     parser.set_defaults(func=run)
 
 
@@ -57,6 +61,14 @@ def run(args: argparse.Namespace) -> int:
         raise ValidationError("give at least one SCENE.ply or --synthetic N")
     if args.synthetic is not None and not 1_000 <= args.synthetic <= 20_000_000:
         raise ValidationError(f"--synthetic must be between 1,000 and 20,000,000 Gaussians, got {args.synthetic}")
+    if args.out:
+        from gscodec_shac.atomic import check_outputs, protect_inputs
+
+        protect_inputs(*args.scenes)
+        if Path(args.out).exists() and not Path(args.out).is_dir():
+            raise ValidationError(f"{args.out}: --out must be a directory, this is a file")
+        check_outputs([Path(args.out) / name for name in ("table.json", "table.csv", "er_curves.png")],
+                      force=args.force)
     results = [_analyse(name, ac, args) for name, ac in _load_scenes(args)]
     rows = [row for row, _ in results]
     average = average_row(rows)
@@ -141,14 +153,16 @@ def _cell(value, percent: bool) -> str:
 def write_outputs(out: Path, rows, average: dict, extras: list[dict]) -> None:
     """table.json, table.csv, correlation_<scene>.png per scene and er_curves.png."""
     from gscodec_shac import sh_index
+    from gscodec_shac.atomic import write_atomic
 
-    (out / "table.json").write_text(json.dumps({"rows": [r.to_dict() for r in rows], "average": average}, indent=2))
+    write_atomic(out / "table.json", json.dumps({"rows": [r.to_dict() for r in rows], "average": average}, indent=2))
     fields = [f for f in rows[0].to_dict() if f not in ("degree_energy_raw", "mean_abs_correlation")]
-    with open(out / "table.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=fields, extrasaction="ignore")
-        writer.writeheader()
-        for item in [r.to_dict() for r in rows] + [average]:
-            writer.writerow({f: item.get(f, "") for f in fields})
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=fields, extrasaction="ignore")
+    writer.writeheader()
+    for item in [r.to_dict() for r in rows] + [average]:
+        writer.writerow({f: item.get(f, "") for f in fields})
+    write_atomic(out / "table.csv", text.getvalue())
     for row, extra in zip(rows, extras):
         degree = sh_index.degree_from_rest_count(row.n_ac_columns // 3)
         plot_correlation(extra["correlation"], sh_index.ac_column_labels(degree), row.scene,
@@ -183,7 +197,7 @@ def plot_correlation(corr, labels: list[str], title: str, path: Path) -> None:
     ax.set_title(f"Pearson correlation of SH AC coefficients: {title}", fontsize=8)
     fig.colorbar(image, ax=ax, fraction=0.046, pad=0.03)
     fig.tight_layout()
-    fig.savefig(path)
+    _save_figure(fig, path)
     plt.close(fig)
 
 
@@ -211,5 +225,13 @@ def plot_er_curves(rows, extras: list[dict], path: Path) -> None:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=6, loc="lower right")
     fig.tight_layout()
-    fig.savefig(path)
+    _save_figure(fig, path)
     plt.close(fig)
+
+
+def _save_figure(fig, path: Path) -> None:
+    """A matplotlib figure as a PNG, written atomically."""
+    from gscodec_shac.atomic import atomic_output
+
+    with atomic_output(path) as handle:
+        fig.savefig(handle, format="png")

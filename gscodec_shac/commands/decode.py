@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from gscodec_shac.commands._options import add_force
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -15,13 +17,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("input", help="input .gsc")
     parser.add_argument("output", help="output model: .ply (Inria 3DGS), .spz, .splat, .sog or .pt (gsplat checkpoint)")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+    add_force(parser)
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from gscodec_shac.atomic import check_output
     from gscodec_shac.codec import decode_file
     from gscodec_shac.io.models import report_notes
 
+    check_output(args.output, force=args.force, inputs=[args.input])
     summary = decode_file(args.input, args.output, progress=not args.quiet and sys.stderr.isatty())
     report_notes(summary["notes"])
     print(

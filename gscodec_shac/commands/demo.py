@@ -80,8 +80,11 @@ def run(args: argparse.Namespace) -> int:
     if args.workers < 1:
         raise GscodecError(f"--workers must be at least 1, got {args.workers}")
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    from gscodec_shac.commands._options import check_results_folder
+
     tic = time.perf_counter()
     out = Path(args.out)
+    check_results_folder(out, args.force)
     spec = parse_sweep(demo_sweep(args.num_gaussians, args.seed, args.preset), source="demo")
     executor = "serial" if args.workers == 1 else "local"
     outcome = run_sweep(spec, out, executor=executor, workers=args.workers, force=args.force, progress=not args.quiet)

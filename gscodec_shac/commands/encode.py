@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from gscodec_shac.commands._options import add_force
 from gscodec_shac.shac.base import STAGES, StageParam
 
 _TYPES = {"int": int, "float": float}
@@ -63,17 +64,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--seed", type=int, help="seed of the sorting and of the vq k-means (default: the rate point's)")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_force(parser)
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     import json
 
+    from gscodec_shac.atomic import check_output
     from gscodec_shac.errors import GscodecError
     from gscodec_shac.codec import encode_file
     from gscodec_shac.codec.rate_points import load_rate_point
     from gscodec_shac.io.models import report_notes
 
+    check_output(args.output, force=args.force,
+                 inputs=[args.input, (args.rate_point or "").rsplit(":", 1)[0], args.cameras])
     targets = (args.target_size, args.target_bpg, args.target_psnr)
     if any(t is not None for t in targets):
         return _run_to_target(args)

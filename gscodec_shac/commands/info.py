@@ -41,38 +41,16 @@ def run(args: argparse.Namespace) -> int:
 
 
 def describe_gsc(stream: Any, path: str) -> dict[str, Any]:
-    """A JSON-serialisable summary of a parsed .gsc :class:`~gscodec_shac.codec.container.Bitstream`."""
-    header = stream.header
-    n = int(header.get("num_gaussians", 0)) or 1
-    total = stream.total_bytes()
-    grid = header.get("grid", {})
-    sh = header.get("sh") or {}
-    return {
-        "file": str(path),
-        "bytes": total,
-        "format_version": "%d.%d" % stream.version,
-        "producer": header.get("producer"),
-        "num_gaussians": header.get("num_gaussians"),
-        "input_gaussians": header.get("input_gaussians"),
-        "pruned": header.get("prune", {}).get("pruned", 0),
-        "dropped": grid.get("dropped", 0),
-        "sh_degree": header.get("sh_degree"),
-        "sh_stage": sh.get("stage"),
-        "sh_features": sh.get("features"),
-        "grid": f"{grid.get('height')}x{grid.get('width')}",
-        "sort": grid.get("sort", {}).get("method"),
-        "padding": grid.get("padding"),
-        "color": header.get("color"),
-        "rate_point": header.get("rate_point", {}).get("name"),
-        "bits_per_gaussian": 8.0 * total / n,
-        "attributes": {name: {"bytes": size, "bits_per_gaussian": 8.0 * size / n}
-                       for name, size in stream.attribute_sizes().items()},
-        "chunks": [
-            {"name": c.name, "bytes": len(c.data), "attribute": c.meta.get("attribute"), "bits": c.meta.get("bits"),
-             "qp": c.meta.get("qp"), "codec": _codec_name(header, c.meta.get("codec"))}
-            for c in stream.chunks
-        ],
-    }
+    """A JSON-serialisable summary of a parsed .gsc :class:`~gscodec_shac.codec.container.Bitstream`,
+    from its checked header (:func:`~gscodec_shac.codec.header.read_header`)."""
+    from gscodec_shac.codec.header import describe, read_header
+    from gscodec_shac.errors import BitstreamError
+
+    try:
+        view = read_header(stream)
+    except BitstreamError as exc:
+        raise BitstreamError(f"{path}: {exc}") from None
+    return {"file": str(path), **describe(view)}
 
 
 def format_gsc_summary(summary: dict[str, Any]) -> str:
@@ -85,7 +63,7 @@ def format_gsc_summary(summary: dict[str, Any]) -> str:
         f"SH                degree {summary['sh_degree']}, stage {summary['sh_stage']}"
         + (f" ({summary['sh_features']} features)" if summary["sh_features"] else ""),
         f"grid              {summary['grid']}, sort {summary['sort']}, padding {summary['padding']}, colour {summary['color']}",
-        f"rate point        {summary['rate_point']}",
+        f"rate point        {summary['rate_point']}" + _target(summary.get("target")),
         f"bits per Gaussian {summary['bits_per_gaussian']:.3f}",
         "attribute                 bytes   share  bits/Gaussian",
     ]
@@ -100,8 +78,13 @@ def format_gsc_summary(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _codec_name(header: dict, index: Any) -> str | None:
-    table = header.get("codecs") or []
-    if isinstance(index, int) and 0 <= index < len(table) and isinstance(table[index], dict):
-        return str(table[index].get("name"))
-    return None
+def _target(target: dict | None) -> str:
+    """`` (rate control: at most 1,234 bytes)`` for a stream made by the rate controller."""
+    if not target:
+        return ""
+    value = target.get("value")
+    if target.get("kind") == "bytes" and isinstance(value, (int, float)):
+        return f" (rate control: at most {value:,.0f} bytes)"
+    if target.get("kind") == "psnr" and isinstance(value, (int, float)):
+        return f" (rate control: at least {value:.2f} dB against the uncompressed model)"
+    return ""

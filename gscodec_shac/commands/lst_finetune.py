@@ -20,7 +20,7 @@ import json
 import math
 from pathlib import Path
 
-from gscodec_shac.commands._options import comma_floats, resize_cameras
+from gscodec_shac.commands._options import add_force, comma_floats, resize_cameras
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -60,6 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--cache-gb", type=float, default=4.0, help="memory budget of the per-view weight cache in GiB (default 4)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: faster on a busy 2-core machine)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_force(parser)
     parser.set_defaults(func=run)
 
 
@@ -96,6 +97,12 @@ def run(args: argparse.Namespace) -> int:
         raise GscodecError(f"--background values must lie in [0, 1], got {args.background!r}")
     if args.images and not Path(args.images).is_dir():
         raise GscodecError(f"{args.images}: no such image folder")
+    from gscodec_shac.atomic import check_output, check_outputs
+    from gscodec_shac.train.finetune import checkpoint_path_for, compact_path_for, log_path_for, summary_path_for
+
+    check_output(out, force=args.force or args.resume, inputs=[args.scene, args.cameras])
+    check_outputs([compact_path_for(out), log_path_for(out), summary_path_for(out)]
+                  + ([] if args.resume else [checkpoint_path_for(out)]), force=args.force or args.resume)
 
     from gscodec_shac.atomic import write_atomic
     from gscodec_shac.camera import orbit_views, test_split

@@ -38,7 +38,13 @@ def run(args: argparse.Namespace) -> int:
     from gscodec_shac.rd.spec import load_sweep
     from gscodec_shac.rd.sweep import run_sweep
 
+    from gscodec_shac.atomic import protect_inputs
+    from gscodec_shac.commands._options import check_results_folder
+
+    protect_inputs(args.sweep)
+    check_results_folder(args.out, args.force)
     spec = load_sweep(args.sweep)
+    protect_inputs(*(scene.ply for scene in spec.scenes if getattr(scene, "ply", None)))
     if args.workers < 1:
         raise GscodecError(f"--workers must be at least 1, got {args.workers}")
     if args.threads is not None and args.threads < 1:

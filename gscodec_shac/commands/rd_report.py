@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from gscodec_shac.commands._options import add_force
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -20,13 +22,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--x-axis", choices=("mb", "bpg"), default="mb", help="plot size in MB or bits per Gaussian")
     parser.add_argument("--title", default=None, help="report title")
     parser.add_argument("--prefix", default="rd_", help="figure file prefix (default rd_)")
+    add_force(parser)
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from gscodec_shac.atomic import check_outputs
     from gscodec_shac.rd.report import bd_table, write_report
     from gscodec_shac.rd.results import load_results
 
+    results = Path(args.results)
+    out = Path(args.out) if args.out else (results if results.is_dir() else results.parent) / "report"
+    if out.exists() and not out.is_dir():
+        from gscodec_shac.errors import OutputError
+
+        raise OutputError(f"{out}: the report folder is a file")
+    check_outputs([out / "report.md", out / "bd.json", out / "bd.csv"], force=args.force, what="report")
     paths = write_report(args.results, args.out, anchor=args.anchor, x_axis=args.x_axis, title=args.title,
                          figure_prefix=args.prefix)
     rows = load_results(args.results)

@@ -14,7 +14,7 @@ import argparse
 import json
 from pathlib import Path
 
-from gscodec_shac.commands._options import comma_floats, resize_cameras
+from gscodec_shac.commands._options import add_force, comma_floats, resize_cameras
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -42,6 +42,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "without either LPIPS is reported as unavailable)")
     parser.add_argument("--out", required=True, help="output directory (created)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_force(parser)
     parser.set_defaults(func=run)
 
 
@@ -74,7 +75,8 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm import tqdm
 
-    from gscodec_shac.errors import GscodecError
+    from gscodec_shac.atomic import check_outputs, protect_inputs, write_atomic
+    from gscodec_shac.errors import GscodecError, OutputError
     from gscodec_shac.io.cameras import load_cameras
     from gscodec_shac.io.models import read_model, report_notes
     from gscodec_shac.metrics import image_metrics, load_image, load_lpips
@@ -84,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
     background = comma_floats(args.background, "--background")
     if not all(0.0 <= v <= 1.0 for v in background):
         raise GscodecError(f"--background values must lie in [0, 1], got {args.background!r}")
+    protect_inputs(args.scene, args.cameras)
     cloud, notes = read_model(args.scene)
     report_notes(notes)
     if args.cameras:
@@ -95,16 +98,20 @@ def run(args: argparse.Namespace) -> int:
     if not cameras:
         raise GscodecError("no cameras left to render after the selection")
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out}: --out must be a directory, this is a file")
+    with_truth = any(c.image_path is not None for c in cameras)
+    protect_inputs(*(c.image_path for c in cameras))
+    names = png_names([camera.name for camera in cameras])
+    check_outputs([out / name for name in names] + ([out / "metrics.json"] if with_truth else []), force=args.force)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise GscodecError(f"{out}: cannot create the output directory ({exc.strerror or exc})") from None
 
-    with_truth = any(c.image_path is not None for c in cameras)
     lpips_model, lpips_reason = load_lpips(args.lpips_weights) if with_truth else (None, None)
     renderer = Renderer(cloud)
     rows = []
-    names = png_names([camera.name for camera in cameras])
     for index, camera in enumerate(tqdm(cameras, desc="render", unit="view", disable=args.quiet)):
         image = renderer.render(camera, background=background).image
         path = save_png(out / names[index], image)
@@ -123,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
             "lpips": float(np.mean([r["lpips"] for r in measured])) if lpips_model is not None else None,
             "lpips_note": lpips_reason,
         }
-        (out / "metrics.json").write_text(json.dumps({"mean": summary, "views": measured}, indent=2) + "\n")
+        write_atomic(out / "metrics.json", json.dumps({"mean": summary, "views": measured}, indent=2) + "\n")
         lpips_text = f"LPIPS {summary['lpips']:.4f}" if summary["lpips"] is not None else "LPIPS unavailable"
         print(f"{len(measured)} view(s) with ground truth: PSNR {summary['psnr']:.3f} dB, "
               f"SSIM {summary['ssim']:.4f}, {lpips_text} (metrics.json)")

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from gscodec_shac.commands._options import add_force
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -20,10 +22,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--views", type=int, default=24, help="number of orbit cameras")
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--height", type=int, default=240)
+    add_force(parser)
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from gscodec_shac.atomic import check_output
     from gscodec_shac.errors import GscodecError
     from gscodec_shac.io.inria_cameras import write_inria_cameras
     from gscodec_shac.io.ply import write_ply
@@ -31,11 +35,13 @@ def run(args: argparse.Namespace) -> int:
 
     if not 1 <= args.num_gaussians <= 20_000_000:
         raise GscodecError(f"--num-gaussians must be between 1 and 20,000,000, got {args.num_gaussians}")
+    out = Path(args.out)
+    check_output(out, force=args.force)
+    check_output(out.with_name("cameras.json"), force=args.force, what="cameras file")
     scene = make_synthetic_scene(
         args.num_gaussians, sh_degree=args.sh_degree, seed=args.seed,
         n_cameras=args.views, width=args.width, height=args.height,
     )
-    out = Path(args.out)
     write_ply(out, scene.cloud)
     cameras_path = out.with_name("cameras.json")
     write_inria_cameras(cameras_path, scene.cameras)

@@ -15,6 +15,8 @@ import math
 import os
 from pathlib import Path
 
+from gscodec_shac.commands._options import add_force
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -56,6 +58,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--threads", type=int, help="numba threads (default: all cores)")
     parser.add_argument("--no-eval", action="store_true", help="skip the test-view evaluation")
     parser.add_argument("--quiet", action="store_true", help="no progress bar (a JSON log line every 100 steps)")
+    add_force(parser)
     parser.set_defaults(func=run)
 
 
@@ -80,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
 
     import numba
 
-    from gscodec_shac.errors import GscodecError
+    from gscodec_shac.atomic import check_outputs, protect_inputs, write_atomic
+    from gscodec_shac.errors import GscodecError, OutputError
     from gscodec_shac.train.data import load_capture
     from gscodec_shac.train.trainer import CHECKPOINT_NAME, TrainConfig, Trainer, write_outputs
 
@@ -93,9 +97,15 @@ def run(args: argparse.Namespace) -> int:
         numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
     if args.time_budget is not None and not args.time_budget > 0:
         raise GscodecError(f"--time-budget must be a positive number of seconds, got {args.time_budget}")
-    if checkpoint.exists() and not args.resume:
-        raise GscodecError(f"{out} already holds a training checkpoint; pass --resume to continue it or choose "
-                           "another OUT_DIR")
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out}: OUT_DIR must be a folder, this is a file")
+    if checkpoint.exists() and not args.resume and not args.force:
+        raise GscodecError(f"{out} already holds a training checkpoint; pass --resume to continue it, --force to "
+                           "start over, or choose another OUT_DIR")
+    if not args.resume:
+        check_outputs([out / name for name in ("point_cloud.ply", "metrics.json", "run.json")], force=args.force)
+    capture_dir = Path(args.capture)
+    protect_inputs(*(sorted(capture_dir.iterdir()) if capture_dir.is_dir() else [capture_dir]))
     if args.resume and not checkpoint.exists():
         raise GscodecError(f"--resume: {checkpoint} does not exist")
     try:
@@ -121,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
             checkpoint_every=args.checkpoint_every,
         )
         trainer = Trainer(capture, config)
-        (out / "run.json").write_text(json.dumps({
+        write_atomic(out / "run.json", json.dumps({
             "capture": str(Path(args.capture).resolve()), "config": config.to_dict(), "schedule": trainer.schedule,
             "train_views": len(capture.train_cameras), "test_views": len(capture.test_cameras),
             "size": [capture.train_cameras[0].width, capture.train_cameras[0].height], "init": capture.info,

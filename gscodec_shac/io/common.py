@@ -12,6 +12,7 @@ from typing import Any
 
 from gscodec_shac.camera import IMAGE_EXTENSIONS
 from gscodec_shac.errors import CameraFormatError
+from gscodec_shac.limits import MAX_JSON_BYTES, MAX_NESTING, check_image_file, image_file_size, json_nesting
 
 
 def require_file(path: Path, what: str) -> None:
@@ -23,15 +24,24 @@ def require_file(path: Path, what: str) -> None:
 
 
 def load_json(path: Path, what: str) -> Any:
-    """The parsed JSON of ``path``; a missing, unreadable or malformed file raises."""
+    """The parsed JSON of ``path``; a missing, unreadable, malformed, too large
+    (:data:`~gscodec_shac.limits.MAX_JSON_BYTES`) or too deeply nested file raises."""
     require_file(path, what)
     try:
-        with open(path, encoding="utf-8") as handle:
-            return json.load(handle)
+        if path.stat().st_size > MAX_JSON_BYTES:
+            raise CameraFormatError(f"{path}: {path.stat().st_size:,} bytes, more than a {what} file may hold "
+                                    f"({MAX_JSON_BYTES:,})")
+        raw = path.read_bytes()
+        depth = json_nesting(raw)
+        if depth > MAX_NESTING:
+            raise CameraFormatError(f"{path}: JSON nested {depth} levels deep (at most {MAX_NESTING})")
+        return json.loads(raw.decode("utf-8"))
     except json.JSONDecodeError as exc:
         raise CameraFormatError(f"{path}: invalid JSON at line {exc.lineno} column {exc.colno} ({exc.msg})") from None
     except UnicodeDecodeError:
         raise CameraFormatError(f"{path}: not a text (UTF-8 JSON) file") from None
+    except ValueError as exc:  # e.g. an integer of thousands of digits
+        raise CameraFormatError(f"{path}: a JSON value cannot be read ({str(exc).splitlines()[0]})") from None
     except OSError as exc:
         raise CameraFormatError(f"{path}: cannot be read ({exc.strerror or exc})") from None
 
@@ -58,9 +68,13 @@ def find_image(directory: Path | None, name: str) -> Path | None:
 
 
 def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) of an image file, read with OpenCV."""
+    """(width, height) of an image file, from its header (decoded with OpenCV when Pillow cannot read it)."""
     import cv2
 
+    check_image_file(path, CameraFormatError)
+    size = image_file_size(path)
+    if size is not None:
+        return size
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise CameraFormatError(f"{path}: cannot be decoded as an image")

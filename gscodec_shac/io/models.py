@@ -57,7 +57,7 @@ def detect_format(path: str | os.PathLike) -> str:
     if path.is_dir():
         if find_sog_meta(path) is not None:
             return "sog"
-        raise ModelFormatError(f"{path}: a folder without a SOG meta.json; supported: {_SUPPORTED}")
+        raise ModelFormatError(f"{path}: is a directory without a SOG meta.json; supported: {_SUPPORTED}")
     with open(path, "rb") as handle:
         head = handle.read(4096)
     if head.startswith(b"ply"):

@@ -95,13 +95,13 @@ def _nerf_camera(frame: dict, params: dict, image_path: Path | None, file_path: 
     if "fl_x" in params:
         fx = finite_float(params["fl_x"], "fl_x", name)
     elif "camera_angle_x" in params:
-        fx = 0.5 * width / math.tan(0.5 * finite_float(params["camera_angle_x"], "camera_angle_x", name))
+        fx = 0.5 * width / math.tan(0.5 * _angle(params["camera_angle_x"], "camera_angle_x", name))
     else:
         raise CameraFormatError("there is neither a 'camera_angle_x' nor an 'fl_x' key")
     if "fl_y" in params:
         fy = finite_float(params["fl_y"], "fl_y", name)
     elif "camera_angle_y" in params:
-        fy = 0.5 * height / math.tan(0.5 * finite_float(params["camera_angle_y"], "camera_angle_y", name))
+        fy = 0.5 * height / math.tan(0.5 * _angle(params["camera_angle_y"], "camera_angle_y", name))
     else:
         fy = fx
     cx = params.get("cx", width / 2.0)
@@ -114,3 +114,11 @@ def _nerf_camera(frame: dict, params: dict, image_path: Path | None, file_path: 
     c2w = float_array(matrix[:3].tolist(), (3, 4), "transform_matrix", name)
     rotation = c2w[:, :3] @ _OPENGL_TO_OPENCV  # flip the camera y and z axes
     return from_camera_to_world(name, width, height, fx, fy, cx, cy, rotation, c2w[:, 3], image_path)
+
+
+def _angle(value: object, key: str, name: str) -> float:
+    """A field of view in radians, strictly between 0 and pi."""
+    angle = finite_float(value, key, name)
+    if not 0.0 < angle < math.pi:
+        raise CameraFormatError(f"camera {name!r}: {key} {angle} is not a field of view in (0, pi) radians")
+    return angle

@@ -10,9 +10,10 @@ the coefficient-major ``sh_rest`` of :class:`GaussianCloud` happens here via
 is kept in ``GaussianCloud.extra`` and written back, so a read/write round trip is
 bit-exact; for a file written by the Inria trainer it is byte-identical.
 
-Binary little/big endian and ASCII files are read (via ``plyfile``); files are
-written binary little endian, atomically (a temporary file renamed into place),
-so a failed write never leaves a half-written PLY behind.
+Binary little/big endian and ASCII files are read (via ``plyfile``), after the header
+has been checked against the data (:mod:`gscodec_shac.io.ply_header`: counts, sizes,
+PlayCanvas compressed PLYs); files are written binary little endian, atomically, so a
+failed write never leaves a half-written PLY behind.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from gscodec_shac import sh_index
 from gscodec_shac.atomic import atomic_output
 from gscodec_shac.errors import PlyFormatError, ValidationError
 from gscodec_shac.gaussians import GaussianCloud
+from gscodec_shac.io.ply_header import FLOAT_TYPES, check_layout, playcanvas_compressed, read_layout
 
 _REQUIRED = (
     ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
@@ -37,22 +39,42 @@ _REQUIRED = (
 )
 _F_REST = re.compile(r"^f_rest_(\d+)$")
 _NORMALS = ("nx", "ny", "nz")
+#: Finite stand-in for an infinite opacity logit (8-bit alpha 0 or 255): sigmoid(20) = 1 - 2e-9.
+OPACITY_LOGIT_LIMIT = 20.0
 
 
-def read_ply(path: str | os.PathLike) -> GaussianCloud:
+def read_ply(path: str | os.PathLike, *, clamp_opacity: bool = False) -> GaussianCloud:
     """Read an Inria 3DGS PLY into a :class:`GaussianCloud`.
 
     Raises :class:`PlyFormatError` with one sentence for: a missing or unreadable
-    file, a file that is not a PLY, no ``vertex`` element, zero vertices, missing
-    3DGS properties, an ``f_rest`` count that fits no SH degree 0-4, list
-    properties, or non-finite values.
+    file, a directory, a file that is not a PLY, a PlayCanvas compressed PLY, element
+    counts that disagree with the data, no ``vertex`` element, zero vertices, missing
+    3DGS properties or 3DGS properties that are not floats, an ``f_rest`` count that fits
+    no SH degree 0-4, list properties, or non-finite values (how many, in which property,
+    at which vertices). ``clamp_opacity`` sets infinite opacity logits (8-bit alpha 0 or
+    255 converted to logits) to +-:data:`OPACITY_LOGIT_LIMIT`, as the RD harness does.
     """
     path = Path(path)
+    if path.is_dir():
+        raise PlyFormatError(f"{path}: is a directory, not a PLY file")
     if not path.is_file():
         raise PlyFormatError(f"{path}: no such file")
     with open(path, "rb") as handle:
         if handle.read(4) != b"ply\n" and not _starts_with_ply(path):
             raise PlyFormatError(f"{path}: not a PLY file (it does not start with 'ply')")
+    layout = read_layout(path)
+    if playcanvas_compressed(layout):
+        raise PlyFormatError(
+            f"{path}: a PlayCanvas/SuperSplat compressed PLY (quantised 'chunk' and packed 'vertex' elements), "
+            f"not an Inria 3DGS PLY; decompress it first, e.g. `npx @playcanvas/splat-transform {path} decompressed.ply`"
+        )
+    check_layout(layout, path)
+    vertex_layout = layout.element("vertex")
+    if vertex_layout is not None:
+        for prop in vertex_layout.properties:
+            if (prop.name in _REQUIRED or _F_REST.match(prop.name)) and not prop.count_type and prop.type not in FLOAT_TYPES:
+                raise PlyFormatError(f"{path}: property {prop.name!r} is {prop.type}; an Inria 3DGS PLY stores it "
+                                     "as float (or double)")
     try:
         data = plyfile.PlyData.read(str(path))
     except Exception as exc:  # plyfile raises several types for malformed input
@@ -98,15 +120,20 @@ def read_ply(path: str | os.PathLike) -> GaussianCloud:
             return np.zeros((count, 0), dtype=np.float32)
         return np.stack([np.asarray(table[c], dtype=np.float32) for c in columns], axis=1)
 
-    f_rest = stack([f"f_rest_{i}" for i in rest_ids])
+    with np.errstate(over="ignore", invalid="ignore"):  # doubles beyond float32 become inf: reported below
+        f_rest = stack([f"f_rest_{i}" for i in rest_ids])
+        opacity = np.asarray(table["opacity"], dtype=np.float32)
+        if clamp_opacity:
+            opacity = np.where(np.isinf(opacity), np.sign(opacity) * np.float32(OPACITY_LOGIT_LIMIT), opacity)
+        _check_finite_columns(path, table, [c for c in _REQUIRED if c != "opacity"], f_rest, opacity)
     known = set(_REQUIRED) | {f"f_rest_{i}" for i in rest_ids}
-    extra = {name: np.array(table[name]) for name in fields if name not in known}
+    extra = {name: _native(table[name]) for name in fields if name not in known}
     try:
         return GaussianCloud(
             means=stack(["x", "y", "z"]),
             scales=stack([f"scale_{i}" for i in range(3)]),
             quats=stack([f"rot_{i}" for i in range(4)]),
-            opacities=np.asarray(table["opacity"], dtype=np.float32),
+            opacities=opacity,
             sh_dc=stack(["f_dc_0", "f_dc_1", "f_dc_2"]),
             sh_rest=sh_index.sh_rest_from_inria_rest(f_rest),
             extra=extra,
@@ -168,6 +195,34 @@ def _ply_dtype(values: np.ndarray) -> str:
     if kind == np.bool_:
         return "u1"
     raise PlyFormatError(f"cannot store values of dtype {kind} in a PLY property")
+
+
+def _check_finite_columns(path: Path, table: np.ndarray, columns: list[str], f_rest: np.ndarray,
+                          opacity: np.ndarray) -> None:
+    """Refuse NaN/inf (after float32 conversion), saying how many, in which properties and where."""
+    named = [(c, np.asarray(table[c], dtype=np.float32)) for c in columns]
+    named += [(f"f_rest_{j}", f_rest[:, j]) for j in range(f_rest.shape[1])] + [("opacity", opacity)]
+    bad = [(name, np.flatnonzero(~np.isfinite(values))) for name, values in named]
+    bad = [(name, rows) for name, rows in bad if rows.size]
+    if not bad:
+        return
+    total = sum(rows.size for _, rows in bad)
+    vertices = np.unique(np.concatenate([rows for _, rows in bad]))
+    shown = "; ".join(f"{name}: {rows.size} (vertex {', '.join(map(str, rows[:3]))}{', ...' if rows.size > 3 else ''})"
+                      for name, rows in bad[:4]) + ("; ..." if len(bad) > 4 else "")
+    if all(name == "opacity" for name, _ in bad) and np.isinf(opacity[bad[0][1]]).all():
+        hint = (f"infinite opacity logits (8-bit alpha 0 or 255) can be clamped to +-{OPACITY_LOGIT_LIMIT:g} as the "
+                "RD harness does: read_ply(path, clamp_opacity=True)")
+    else:
+        hint = "fix or remove those Gaussians (the codec needs finite values)"
+    raise PlyFormatError(f"{path}: {total} non-finite value(s) (NaN, inf or beyond float32 range) in "
+                         f"{vertices.size} vertices: {shown}; {hint}")
+
+
+def _native(values: np.ndarray) -> np.ndarray:
+    """A copy in native byte order (a big-endian PLY's extra properties write back like any other)."""
+    values = np.array(values)
+    return values.astype(values.dtype.newbyteorder("="), copy=False)
 
 
 def _valid_rest_counts() -> str:

@@ -61,9 +61,10 @@ def plot_scene(rows: list[dict[str, Any]], scene: str, path: str | Path, *, x_ax
     handles, labels = axes[0][0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=min(5, max(1, len(labels))), fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0.06 + 0.02 * ((len(labels) - 1) // 5), 1, 1))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
+    from gscodec_shac.atomic import atomic_output
+
+    with atomic_output(path, make_dirs=True) as handle:
+        fig.savefig(handle, dpi=dpi, format=Path(path).suffix.lstrip(".") or "png")
     plt.close(fig)
     return True
 

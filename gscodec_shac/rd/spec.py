@@ -397,7 +397,7 @@ def _method(raw: Any, key: str, err: Where, base: Path) -> MethodSpec:
     raw = dict(raw)
     name = _name(raw.pop("name", raw.get("recipe")), f"{key}.name", err)
     recipe = raw.pop("recipe", name)
-    if recipe not in RECIPES:
+    if not isinstance(recipe, str) or recipe not in RECIPES:
         raise err.error(f"{key}.recipe", f"unknown recipe {recipe!r} (known: {', '.join(RECIPES.names())})")
     try:
         params = RECIPES.get(recipe).check(raw, base)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gscodec_shac.atomic import write_atomic
 from gscodec_shac.errors import GscodecError
 
 _UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
@@ -26,9 +27,10 @@ def save_png(path: str | os.PathLike, image: np.ndarray) -> Path:
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3:
         raise GscodecError(f"{path}: expected an (H, W, 3) RGB image, got shape {image.shape}")
-    if not cv2.imwrite(str(path), to_uint8(image)[:, :, ::-1]):
-        raise GscodecError(f"{path}: could not write the PNG (does the directory exist and is it writable?)")
-    return path
+    ok, encoded = cv2.imencode(".png", to_uint8(image)[:, :, ::-1])
+    if not ok:
+        raise GscodecError(f"{path}: could not encode the PNG")
+    return write_atomic(path, encoded.tobytes())
 
 
 def png_name(camera_name: str, index: int) -> str:

@@ -22,6 +22,7 @@ from gscodec_shac.camera import Camera
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.geometry import covariances
+from gscodec_shac.limits import check_render_memory
 from gscodec_shac.render.binning import TileBins, bin_gaussians
 from gscodec_shac.render.projection import (
     P_A,
@@ -160,6 +161,7 @@ class Renderer:
     def prepare(self, camera: Camera) -> Frame:
         """Project, shade and bin for ``camera`` (everything but the per-pixel blend)."""
         projection = self._project(camera)
+        check_render_memory(camera.width, camera.height, f"camera {camera.name!r}")
         ws = self._workspace()
         view_colors(
             self.means, self.cloud.sh_dc, self.cloud.sh_rest, camera.center, projection.radii > 0, ws.pack_n, P_R

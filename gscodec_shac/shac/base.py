@@ -31,6 +31,7 @@ import numpy as np
 
 from gscodec_shac import sh_index
 from gscodec_shac.errors import GscodecError, ValidationError
+from gscodec_shac.limits import MAX_NESTING, json_nesting
 from gscodec_shac.registry import Registry
 from gscodec_shac.validate import Where
 
@@ -72,8 +73,13 @@ class StageState:
         if 8 + length > len(data):
             raise GscodecError("SH stage state is truncated (header runs past the end)")
         try:
-            header = json.loads(data[8 : 8 + length])
+            raw = data[8 : 8 + length]
+            if json_nesting(raw) > MAX_NESTING:
+                raise ValueError("nested too deep")
+            header = json.loads(raw)
             name, params, layout = header["name"], header["params"], header["arrays"]
+            if not (isinstance(name, str) and isinstance(params, dict) and isinstance(layout, list)):
+                raise TypeError("types")
         except (ValueError, KeyError, TypeError):
             raise GscodecError("SH stage state is corrupt (unreadable header)") from None
         offset = 8 + length
@@ -81,12 +87,15 @@ class StageState:
         for entry in layout:
             try:
                 dtype = np.dtype(entry["dtype"])
-                shape = tuple(int(s) for s in entry["shape"])
+                shape = tuple(entry["shape"])
+                if not isinstance(entry["key"], str) or entry["key"] in arrays:
+                    raise ValueError("key")
             except (KeyError, TypeError, ValueError):
                 raise GscodecError("SH stage state is corrupt (bad array entry)") from None
-            if dtype.str not in _ALLOWED_DTYPES or any(s < 0 for s in shape):
+            if (dtype.str not in _ALLOWED_DTYPES or len(shape) > 8
+                    or any(isinstance(s, bool) or not isinstance(s, int) or not 0 <= s <= 1 << 32 for s in shape)):
                 raise GscodecError(f"SH stage state is corrupt (array {entry.get('key')!r})")
-            size = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+            size = math.prod(shape) * dtype.itemsize
             if offset + size > len(data):
                 raise GscodecError(f"SH stage state is truncated (array {entry['key']!r})")
             arrays[entry["key"]] = np.frombuffer(data, dtype=dtype, count=size // dtype.itemsize, offset=offset).reshape(shape).copy()

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -402,10 +401,10 @@ class Trainer:
         arrays = dict(self.model.state_arrays())
         arrays.update({"stats/grad_accum": self.stats.grad_accum, "stats/denom": self.stats.denom,
                        "stats/max_radii": self.stats.max_radii})
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "wb") as handle:
+        from gscodec_shac.atomic import atomic_output
+
+        with atomic_output(path) as handle:
             np.savez(handle, meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8), **arrays)
-        os.replace(tmp, path)
         return path
 
     @classmethod
@@ -540,9 +539,9 @@ def write_outputs(
     metrics.update(extra or {})
     metrics["log"] = trainer.log
     metrics["events"] = trainer.events[-200:]
-    tmp = out_dir / "metrics.json.tmp"
-    tmp.write_text(json.dumps(metrics, indent=1))
-    os.replace(tmp, out_dir / "metrics.json")
+    from gscodec_shac.atomic import write_atomic
+
+    write_atomic(out_dir / "metrics.json", json.dumps(metrics, indent=1))
     return metrics
 
 

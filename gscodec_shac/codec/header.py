@@ -1,0 +1,498 @@
+"""The one validator of a parsed ``.gsc`` container: :func:`read_header` -> :class:`StreamHeader`.
+
+Every reader of a stream (the decoder, ``gscodec-shac info``, the gsplat drop-in) calls
+:func:`read_header` and then uses only the typed, checked view it returns; nothing reads
+``Bitstream.header`` directly. A check that fails raises one :class:`BitstreamError`
+naming the key (``corrupt .gsc file: key 'grid.height': must be an integer in 1..67108864,
+got -1``). What is checked, before anything is decoded or allocated:
+
+* types and ranges of every field a reader uses, every enum by name (padding, colour,
+  chunk part, SH stage, grid codec, attribute transform, chunk encoding);
+* counts: Gaussians (at most :data:`~gscodec_shac.limits.MAX_GAUSSIANS`), the grid shape
+  against the Gaussian count, channels per attribute, SH features against the SH stage;
+* the chunk table: each chunk named by an attribute exactly once, its plane shape equal
+  to ``(channels, H, W)``, its bit depth equal to the attribute's, every channel covered
+  exactly once, codec indices inside the codec table, no unlisted chunk;
+* zlib chunks (``grid_mask``, ``sh_state``): the declared inflated size against its
+  limit and against what deflate can produce from the stored bytes (at most 1032:1);
+* the peak memory a decode needs (:meth:`StreamHeader.peak_memory`) is the decoder's to
+  compare with :func:`gscodec_shac.limits.memory_budget` before the first allocation.
+
+:func:`read_stage` rebuilds the SH stage from the ``sh_state`` chunk and checks its arrays
+against the declared shapes (features in, AC columns out) on one row before any decode.
+Unknown keys are ignored: minor versions may add information an older reader skips.
+"""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from gscodec_shac import sh_index
+from gscodec_shac.codec.attributes import ATTRIBUTES, SH_FEATURES_TRANSFORM
+from gscodec_shac.codec.container import Bitstream, Chunk
+from gscodec_shac.codec.grid.base import CODECS
+from gscodec_shac.codec.quantize import Quantizer
+from gscodec_shac.errors import BitstreamError, GscodecError
+from gscodec_shac.limits import MAX_GAUSSIANS
+from gscodec_shac.shac.base import STAGES, ShStage, StageState, stage_from_state
+from gscodec_shac.validate import Where
+
+#: Header checks raise this: "corrupt .gsc file: key 'k': problem".
+HEADER = Where("corrupt .gsc file", BitstreamError)
+#: The most SH features (and channels of any attribute) a stream may declare.
+MAX_SH_FEATURES = 128
+#: The largest inflated SH stage state (a real one: 1 KiB-3 MiB).
+MAX_STATE_BYTES = 256 << 20
+#: Deflate never expands more than 1032:1 (258-byte matches in 2-bit codes), zlib framing included.
+ZLIB_MAX_RATIO = 1032
+#: The most entries of the codec table.
+MAX_CODECS = 64
+PADDINGS = ("tail", "mask", "zorder")
+#: How an attribute is coded: as planes of a grid codec, or (positions) as a Morton-sorted set.
+CODINGS = ("planes", "set")
+COLORS = ("rgb", "ycbcr")
+PARTS = ("all", "hi", "lo")
+SORT_POLICIES = ("pad", "drop", "geometry")
+#: Channels of the fixed attributes (the SH features' count is in the header).
+CHANNELS = {"positions": 3, "rotation": 4, "scale": 3, "opacity": 1, "sh_dc": 3}
+_MAX_QP = 51
+_OPTION_TYPES = (str, int, float, bool, type(None))
+
+
+@dataclass(frozen=True)
+class ShEntry:
+    """The SH stage: its name, feature count and how its features were coded."""
+
+    stage: str
+    features: int
+    lossless: bool
+    uses_dc: bool
+    ycbcr: bool
+
+
+@dataclass(frozen=True)
+class AttributeEntry:
+    """One coded attribute: channels, sample bits, quantiser (None: integers) and its chunks."""
+
+    name: str
+    channels: int
+    bits: int
+    transform: str
+    chunks: tuple[str, ...]
+    quantizer: Quantizer | None
+    coding: str = "planes"
+
+
+@dataclass(frozen=True)
+class ChunkPlan:
+    """A chunk of planes: channels ``[start, stop)`` of ``attribute`` (or their high/low byte)."""
+
+    name: str
+    attribute: str
+    start: int
+    stop: int
+    part: str
+    bits: int
+    codec: int
+    qp: int | None
+
+
+@dataclass(frozen=True)
+class CodecEntry:
+    """An entry of the codec table: registry name, library version, options."""
+
+    name: str
+    version: str | None
+    options: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class StreamHeader:
+    """The checked view of a ``.gsc`` header (see the module docstring)."""
+
+    version: tuple[int, int]
+    total_bytes: int
+    num_gaussians: int
+    sh_degree: int
+    grid_shape: tuple[int, int]
+    padding: str
+    color: str
+    sh: ShEntry | None
+    attributes: dict[str, AttributeEntry]
+    chunks: tuple[ChunkPlan, ...]
+    codecs: tuple[CodecEntry, ...]
+    chunk_bytes: dict[str, int]
+    chunk_attributes: dict[str, str]
+    #: Declared inflated size of each zlib chunk (``grid_mask``, ``sh_state``).
+    zlib_sizes: dict[str, int]
+    # what the writer recorded for people (``info``); None when absent
+    producer: str | None = None
+    input_gaussians: int | None = None
+    pruned: int = 0
+    dropped: int = 0
+    sort_method: str | None = None
+    rate_point: str | None = None
+    #: The rate-control target the stream was made for (``{"kind", "value"}``), if any.
+    target: dict[str, Any] | None = None
+
+    @property
+    def cells(self) -> int:
+        return self.grid_shape[0] * self.grid_shape[1]
+
+    @property
+    def channels(self) -> int:
+        """Coded channels over all attributes."""
+        return sum(entry.channels for entry in self.attributes.values())
+
+    def decoded_bytes(self) -> int:
+        """Bytes of the decoded cloud's float32 arrays (what the decode produces)."""
+        floats = 3 + 3 + 4 + 1 + 3 + 3 * sh_index.num_rest_coeffs(self.sh_degree)
+        return 4 * floats * self.num_gaussians
+
+    def peak_memory(self, workers: int = 1) -> int:
+        """An upper bound of the decoder's extra peak memory for this stream, in bytes.
+
+        The decoded planes (uint16, all held until assembly), each attribute's copies on
+        the way to float32 values, the SH reconstruction (float64 where the stage works in
+        it) and the cloud, plus one grid codec's working copies per worker and the inflated
+        stage state with its arrays (a vq codebook of bytes becomes float32); calibrated on
+        real decodes (docs/reliability.md, "Memory").
+        """
+        n, cells = self.num_gaussians, self.cells
+        widest = max((plan.stop - plan.start for plan in self.chunks), default=0)
+        ac = 3 * sh_index.num_rest_coeffs(self.sh_degree)
+        planes = 2 * cells * self.channels
+        codec = 4 * 2 * cells * widest * max(1, min(workers, len(self.chunks)))
+        values = n * self.channels * (2 + 4 + 8)
+        sh = n * (ac + 3) * (8 + 8 + 4) if self.sh else 0
+        state = 6 * sum(self.zlib_sizes.values())
+        position_set = 48 * n if any(e.coding == "set" for e in self.attributes.values()) else 0
+        return planes + codec + values + sh + state + position_set + 2 * self.decoded_bytes()
+
+
+def read_header(stream: Bitstream) -> StreamHeader:
+    """Check ``stream``'s header completely against itself and its chunks; the checked view."""
+    header = stream.header
+    n = HEADER.integer(header.get("num_gaussians"), "num_gaussians", 1, MAX_GAUSSIANS)
+    degree = HEADER.integer(header.get("sh_degree"), "sh_degree", 0, sh_index.MAX_SH_DEGREE)
+    grid = HEADER.mapping(header.get("grid"), "grid", optional=False)
+    shape = (HEADER.integer(grid.get("height"), "grid.height", 1, MAX_GAUSSIANS),
+             HEADER.integer(grid.get("width"), "grid.width", 1, MAX_GAUSSIANS))
+    if not n <= shape[0] * shape[1] <= 2 * n + 4096:
+        raise HEADER.error("grid", f"a {shape[0]}x{shape[1]} grid cannot hold {n:,} Gaussians")
+    padding = HEADER.choice(grid.get("padding"), PADDINGS, "grid.padding")
+    color = HEADER.choice(header.get("color", "rgb"), COLORS, "color")
+    sh = _sh_entry(header.get("sh"), degree)
+    codecs = _codec_table(header.get("codecs"))
+    attributes = _attributes(header.get("attributes"), sh)
+    as_set = attributes["positions"].coding == "set"
+    if as_set != ("positions_set" in stream.features) or as_set != (padding == "zorder"):
+        raise HEADER.error("grid.padding", "set-coded positions, the zorder padding and the positions_set "
+                           "feature come together")
+    chunks = _chunk_plans(stream, attributes, shape, len(codecs))
+    zlib_sizes = _zlib_chunks(stream, attributes, sh, padding, shape[0] * shape[1])
+
+    prune = HEADER.mapping(header.get("prune"), "prune")
+    policy = grid.get("policy")
+    if policy is not None:
+        HEADER.choice(policy, SORT_POLICIES, "grid.policy")
+    sort = HEADER.mapping(grid.get("sort"), "grid.sort")
+    rate_point = HEADER.mapping(header.get("rate_point"), "rate_point")
+    control = HEADER.mapping(header.get("rate_control"), "rate_control")
+    target = HEADER.mapping(control.get("target"), "rate_control.target") or None
+    return StreamHeader(
+        version=stream.version,
+        total_bytes=stream.total_bytes(),
+        num_gaussians=n,
+        sh_degree=degree,
+        grid_shape=shape,
+        padding=padding,
+        color=color,
+        sh=sh,
+        attributes=attributes,
+        chunks=chunks,
+        codecs=codecs,
+        chunk_bytes={c.name: len(c.data) for c in stream.chunks},
+        chunk_attributes={c.name: _optional_string(c.meta.get("attribute"), f"chunks.{c.name}.attribute") or c.name
+                          for c in stream.chunks},
+        zlib_sizes=zlib_sizes,
+        producer=_optional_string(header.get("producer"), "producer"),
+        input_gaussians=_optional_integer(header.get("input_gaussians"), "input_gaussians", n, 1 << 40),
+        pruned=_optional_integer(prune.get("pruned"), "prune.pruned", 0, 1 << 40) or 0,
+        dropped=_optional_integer(grid.get("dropped"), "grid.dropped", 0, 1 << 40) or 0,
+        sort_method=_optional_string(sort.get("method"), "grid.sort.method"),
+        rate_point=_optional_string(rate_point.get("name"), "rate_point.name"),
+        target=target,
+    )
+
+
+def read_stage(stream: Bitstream, view: StreamHeader) -> ShStage:
+    """The SH stage rebuilt from ``sh_state``, checked against the header on one row."""
+    sh = view.sh
+    if sh is None:
+        raise BitstreamError("corrupt .gsc file: the stream has no SH stage")
+    try:
+        state = StageState.from_bytes(inflate(stream.chunk("sh_state"), view.zlib_sizes["sh_state"]))
+    except BitstreamError:
+        raise
+    except GscodecError as exc:
+        raise BitstreamError(f"corrupt .gsc file: chunk 'sh_state': {exc}") from None
+    if state.name != sh.stage:
+        raise BitstreamError(f"corrupt .gsc file: chunk 'sh_state' holds stage {state.name!r}, "
+                             f"the header says {sh.stage!r}")
+    try:
+        stage = stage_from_state(state)
+        probe = np.asarray(stage.inverse_transform(np.zeros((1, sh.features), dtype=np.float32)))
+    except GscodecError as exc:
+        raise BitstreamError(f"corrupt .gsc file: chunk 'sh_state': {exc}") from None
+    except (ValueError, TypeError, KeyError, IndexError, AttributeError, OverflowError) as exc:
+        raise BitstreamError(f"corrupt .gsc file: chunk 'sh_state' is inconsistent "
+                             f"({type(exc).__name__}: {exc})") from None
+    columns = 3 * sh_index.num_rest_coeffs(view.sh_degree) + (3 if sh.uses_dc else 0)
+    if probe.shape != (1, columns):
+        raise BitstreamError(f"corrupt .gsc file: the {sh.stage!r} stage state gives {probe.shape[-1]} SH columns "
+                             f"from {sh.features} features, SH degree {view.sh_degree} needs {columns}")
+    return stage
+
+
+def inflate(chunk: Chunk, raw_size: int) -> bytes:
+    """A zlib chunk's bytes, exactly ``raw_size`` of them (checked by :func:`read_header`)."""
+    inflater = zlib.decompressobj()
+    try:
+        out = inflater.decompress(chunk.data, raw_size + 1)
+    except zlib.error as exc:
+        raise BitstreamError(f"corrupt .gsc file: chunk {chunk.name!r} does not inflate ({exc})") from None
+    if len(out) != raw_size or not inflater.eof or inflater.unused_data:
+        raise BitstreamError(f"corrupt .gsc file: chunk {chunk.name!r} does not inflate to {raw_size} bytes")
+    return out
+
+
+# ------------------------------------------------------------------ parts
+def _sh_entry(value: Any, degree: int) -> ShEntry | None:
+    if value is None:
+        if degree > 0:
+            raise HEADER.error("sh", f"SH degree {degree} needs an SH stage entry, got none")
+        return None
+    if degree == 0:
+        raise HEADER.error("sh", "SH degree 0 has no SH stage, but the header names one")
+    sh = HEADER.mapping(value, "sh", optional=False)
+    return ShEntry(
+        stage=HEADER.choice(sh.get("stage"), STAGES.names(), "sh.stage"),
+        features=HEADER.integer(sh.get("features"), "sh.features", 0, MAX_SH_FEATURES),
+        lossless=HEADER.boolean(sh.get("lossless"), "sh.lossless"),
+        uses_dc=HEADER.boolean(sh.get("uses_dc"), "sh.uses_dc"),
+        ycbcr=HEADER.boolean(sh.get("ycbcr"), "sh.ycbcr"),
+    )
+
+
+def _codec_table(value: Any) -> tuple[CodecEntry, ...]:
+    table = HEADER.sequence(value, "codecs")
+    if len(table) > MAX_CODECS:
+        raise HEADER.error("codecs", f"{len(table)} entries (at most {MAX_CODECS})")
+    entries = []
+    for index, raw in enumerate(table):
+        key = f"codecs[{index}]"
+        entry = HEADER.mapping(raw, key, optional=False)
+        options = HEADER.mapping(entry.get("options"), f"{key}.options")
+        for name, option in options.items():
+            if not isinstance(option, _OPTION_TYPES):
+                raise HEADER.error(f"{key}.options.{name}", f"must be a string, number, boolean or null, got {option!r}")
+        entries.append(CodecEntry(HEADER.choice(entry.get("name"), CODECS.names(), f"{key}.name"),
+                                  _optional_string(entry.get("version"), f"{key}.version"), options))
+    return tuple(entries)
+
+
+def _attributes(value: Any, sh: ShEntry | None) -> dict[str, AttributeEntry]:
+    attrs = HEADER.mapping(value, "attributes", optional=False)
+    expected = [name for name in ATTRIBUTES if not (name == "sh_dc" and sh and sh.uses_dc)]
+    if sh and sh.features:
+        expected.append("sh")
+    if sorted(attrs) != sorted(expected):
+        raise HEADER.error("attributes", f"names {sorted(map(str, attrs))}, expected {sorted(expected)}")
+    out = {}
+    for name in expected:
+        key = f"attributes.{name}"
+        entry = HEADER.mapping(attrs[name], key, optional=False)
+        channels = HEADER.integer(entry.get("channels"), f"{key}.channels", 1, MAX_SH_FEATURES)
+        wanted = sh.features if name == "sh" else CHANNELS[name]
+        if channels != wanted:
+            raise HEADER.error(f"{key}.channels", f"must be {wanted}, got {channels}")
+        transform = SH_FEATURES_TRANSFORM if name == "sh" else ATTRIBUTES[name].transform
+        HEADER.choice(entry.get("transform"), (transform,), f"{key}.transform")
+        chunks = HEADER.sequence(entry.get("chunks"), f"{key}.chunks")
+        names = tuple(HEADER.string(c, f"{key}.chunks[{i}]") for i, c in enumerate(chunks))
+        if len(set(names)) != len(names):
+            raise HEADER.error(f"{key}.chunks", "names a chunk twice")
+        quantizer = _quantizer(entry.get("quantizer"), channels, f"{key}.quantizer")
+        coding = HEADER.choice(entry.get("coding", "planes"), CODINGS, f"{key}.coding")
+        if coding == "set" and (name != "positions" or quantizer is None or len(names) != 1):
+            raise HEADER.error(f"{key}.coding", "only positions, with a quantizer and one chunk, are set-coded")
+        integer_bits = entry.get("integer_bits")
+        if integer_bits is None and quantizer is None:
+            raise HEADER.error(key, "has neither a quantizer nor integer_bits")
+        if integer_bits is not None:
+            HEADER.integer(integer_bits, f"{key}.integer_bits", 1, 16)
+            if quantizer is not None and quantizer.bits != integer_bits:
+                raise HEADER.error(f"{key}.integer_bits", f"{integer_bits} differs from the quantizer's {quantizer.bits}")
+        bits = integer_bits if integer_bits is not None else quantizer.bits
+        out[name] = AttributeEntry(name, channels, bits, transform, names, quantizer, coding)
+    return out
+
+
+def _quantizer(value: Any, channels: int, key: str) -> Quantizer | None:
+    if value is None:
+        return None
+    entry = HEADER.mapping(value, key, optional=False)
+    bits = HEADER.integer(entry.get("bits"), f"{key}.bits", 1, 16)
+    float32_max = float(np.finfo(np.float32).max)
+    ranges = []
+    for side in ("min", "max"):
+        values = entry.get(side)
+        if not isinstance(values, list) or len(values) != channels:
+            raise HEADER.error(f"{key}.{side}", f"must be a list of {channels} numbers, got {values!r}")
+        ranges.append([HEADER.number(v, f"{key}.{side}[{i}]", -float32_max, float32_max) for i, v in enumerate(values)])
+    lo, hi = (np.asarray(r, dtype=np.float32) for r in ranges)
+    bad = np.flatnonzero(hi < lo)
+    if bad.size:
+        raise HEADER.error(f"{key}.max[{bad[0]}]", f"{hi[bad[0]]} is below min {lo[bad[0]]}")
+    return Quantizer(bits, lo, hi)
+
+
+def _chunk_plans(stream: Bitstream, attributes: dict[str, AttributeEntry], shape: tuple[int, int],
+                 n_codecs: int) -> tuple[ChunkPlan, ...]:
+    present = {c.name: c for c in stream.chunks}
+    plans, owner = [], {}
+    for attribute in attributes.values():
+        cover = {part: np.zeros(attribute.channels, dtype=np.int64) for part in PARTS}
+        for name in attribute.chunks:
+            if name in owner or name in ("grid_mask", "sh_state"):
+                raise HEADER.error(f"attributes.{attribute.name}.chunks", f"chunk {name!r} is listed twice")
+            owner[name] = attribute.name
+            if name not in present:
+                raise HEADER.error(f"attributes.{attribute.name}.chunks", f"chunk {name!r} is not in the chunk table")
+            if attribute.coding == "set":
+                _check_set_chunk(present[name].meta, name, attribute)
+                cover["all"][:] = 1
+                continue
+            plan = _chunk_plan(present[name].meta, name, attribute, shape, n_codecs)
+            cover[plan.part][plan.start : plan.stop] += 1
+            plans.append(plan)
+        whole = (cover["all"] == 1) & (cover["hi"] == 0) & (cover["lo"] == 0)
+        split = (cover["all"] == 0) & (cover["hi"] == 1) & (cover["lo"] == 1)
+        if not np.all(whole | split):
+            raise HEADER.error(f"attributes.{attribute.name}.chunks", "do not cover each channel exactly once")
+    return tuple(plans)
+
+
+def _check_set_chunk(meta: dict, name: str, attribute: AttributeEntry) -> None:
+    """The chunk of set-coded positions: its encoding and bit depth (the quantiser's)."""
+    key = f"chunks.{name}"
+    if meta.get("attribute", attribute.name) != attribute.name:
+        raise HEADER.error(f"{key}.attribute", f"must be {attribute.name!r}, got {meta.get('attribute')!r}")
+    HEADER.choice(meta.get("encoding"), ("morton_set",), f"{key}.encoding")
+    HEADER.choice(meta.get("bits"), (attribute.bits,), f"{key}.bits")
+
+
+def _chunk_plan(meta: dict, name: str, attribute: AttributeEntry, shape: tuple[int, int], n_codecs: int) -> ChunkPlan:
+    key = f"chunks.{name}"
+    if meta.get("attribute", attribute.name) != attribute.name:
+        raise HEADER.error(f"{key}.attribute", f"must be {attribute.name!r}, got {meta.get('attribute')!r}")
+    channels = meta.get("channels")
+    if not isinstance(channels, list) or len(channels) != 2:
+        raise HEADER.error(f"{key}.channels", f"must be [start, stop], got {channels!r}")
+    start = HEADER.integer(channels[0], f"{key}.channels[0]", 0, attribute.channels - 1)
+    stop = HEADER.integer(channels[1], f"{key}.channels[1]", start + 1, attribute.channels)
+    part = HEADER.choice(meta.get("part"), PARTS, f"{key}.part")
+    bits = HEADER.integer(meta.get("bits"), f"{key}.bits", 1, 16)
+    wanted = {"all": attribute.bits, "hi": attribute.bits - 8, "lo": 8}[part]
+    if part != "all" and attribute.bits <= 8:
+        raise HEADER.error(f"{key}.part", f"{attribute.bits}-bit samples are not split into bytes")
+    if bits != wanted:
+        raise HEADER.error(f"{key}.bits", f"must be {wanted} for a {part!r} chunk of {attribute.bits}-bit samples, "
+                           f"got {bits}")
+    plane_shape = meta.get("shape")
+    if plane_shape != [stop - start, *shape]:
+        raise HEADER.error(f"{key}.shape", f"must be {[stop - start, *shape]}, got {plane_shape!r}")
+    codec = HEADER.integer(meta.get("codec"), f"{key}.codec", 0, n_codecs - 1)
+    qp = meta.get("qp")
+    if qp is not None:
+        HEADER.integer(qp, f"{key}.qp", 0, _MAX_QP)
+    return ChunkPlan(name, attribute.name, start, stop, part, bits, codec, qp)
+
+
+def _zlib_chunks(stream: Bitstream, attributes: dict[str, AttributeEntry], sh: ShEntry | None, padding: str,
+                 cells: int) -> dict[str, int]:
+    """``{name: raw size}`` of the zlib chunks; checks no chunk is unaccounted for."""
+    expected = {}
+    if padding == "mask":
+        expected["grid_mask"] = (cells + 7) // 8
+    if sh is not None:
+        expected["sh_state"] = None
+    listed = {name for entry in attributes.values() for name in entry.chunks}
+    named = {c.name for c in stream.chunks}
+    stray = sorted(named - listed - set(expected))
+    missing = sorted(set(expected) - named)
+    if stray or missing:
+        what = f"chunk {stray[0]!r} belongs to no attribute" if stray else f"chunk {missing[0]!r} is missing"
+        raise HEADER.error("chunks", what)
+    sizes = {}
+    for name, exact in expected.items():
+        chunk = stream.chunk(name)
+        key = f"chunks.{name}"
+        HEADER.choice(chunk.meta.get("encoding"), ("zlib",), f"{key}.encoding")
+        limit = exact if exact is not None else MAX_STATE_BYTES
+        raw_size = HEADER.integer(chunk.meta.get("raw_size"), f"{key}.raw_size", exact or 0, limit)
+        if raw_size > ZLIB_MAX_RATIO * len(chunk.data):
+            raise HEADER.error(f"{key}.raw_size", f"{raw_size:,} bytes cannot come from {len(chunk.data):,} "
+                               f"deflated bytes (at most {ZLIB_MAX_RATIO}:1)")
+        sizes[name] = raw_size
+    return sizes
+
+
+def _optional_string(value: Any, key: str) -> str | None:
+    return None if value is None else HEADER.string(value, key)
+
+
+def _optional_integer(value: Any, key: str, lo: int, hi: int) -> int | None:
+    return None if value is None else HEADER.integer(value, key, lo, hi)
+
+
+def describe(view: StreamHeader) -> dict[str, Any]:
+    """A JSON-serialisable summary of a checked header (``gscodec-shac info`` of a ``.gsc``)."""
+    n = view.num_gaussians
+    sizes: dict[str, int] = {"header": view.total_bytes - sum(view.chunk_bytes.values())}
+    for name, size in view.chunk_bytes.items():
+        attribute = view.chunk_attributes[name]
+        sizes[attribute] = sizes.get(attribute, 0) + size
+    plans = {plan.name: plan for plan in view.chunks}
+    return {
+        "bytes": view.total_bytes,
+        "format_version": "%d.%d" % view.version,
+        "producer": view.producer,
+        "num_gaussians": n,
+        "input_gaussians": view.input_gaussians if view.input_gaussians is not None else n,
+        "pruned": view.pruned,
+        "dropped": view.dropped,
+        "sh_degree": view.sh_degree,
+        "sh_stage": view.sh.stage if view.sh else None,
+        "sh_features": view.sh.features if view.sh else None,
+        "grid": f"{view.grid_shape[0]}x{view.grid_shape[1]}",
+        "sort": "positions (set-coded)" if view.padding == "zorder" else view.sort_method,
+        "padding": view.padding,
+        "color": view.color,
+        "rate_point": view.rate_point,
+        "target": view.target,
+        "bits_per_gaussian": 8.0 * view.total_bytes / n,
+        "decoded_bytes": view.decoded_bytes(),
+        "attributes": {name: {"bytes": size, "bits_per_gaussian": 8.0 * size / n} for name, size in sizes.items()},
+        "chunks": [
+            {"name": name, "bytes": size, "attribute": view.chunk_attributes[name],
+             "bits": plans[name].bits if name in plans else None, "qp": plans[name].qp if name in plans else None,
+             "codec": view.codecs[plans[name].codec].name if name in plans else None}
+            for name, size in view.chunk_bytes.items()
+        ],
+    }
