@@ -1,9 +1,10 @@
 """Rate control (SHAC-auto): the best quality at a size, or the smallest file at a quality.
 
 The template rate point (``rate_points/shac_auto.yaml``) fixes the containers and the SH
-stage; for each scene and target the controller chooses six settings: the position bits
-(set coding) and the QPs of opacity, rotation, scale, DC and the water-filled SHAC-PCA
-features (whose base QP also picks the rank M, :mod:`.allocation`).
+stage; for each scene and target the controller chooses seven settings: the opacity below
+which Gaussians are pruned, the position bits (set coding) and the QPs of opacity,
+rotation, scale, DC and the water-filled SHAC-PCA features (whose base QP also picks the
+rank M, :mod:`.allocation`).
 
 The attributes are coded independently, so both the size and, for small errors, the
 rendered mean squared error are sums over attributes. The controller therefore models
@@ -16,7 +17,10 @@ each attribute on its own:
   position bits are measured exactly on the whole cloud (set coding is cheap);
 * **render sensitivity** ``k_a``: the rendered MSE per unit attribute MSE, from renders of
   the cloud with that attribute perturbed by noise of the size the codec leaves, on a few
-  views (the scene's cameras, else orbit views), against renders of the uncompressed cloud.
+  views (the scene's cameras, else orbit views), against renders of the uncompressed cloud;
+* **pruning**: the rendered MSE of the cloud without its Gaussians below each opacity
+  threshold (exact renders); pruning keeps a share ``f`` of the Gaussians and scales every
+  attribute's bytes by ``f`` (positions: their gaps grow, ``+log2(1/f)`` bits each).
 
 The predicted rendered error is ``D = sum_a k_a e_a(x_a)`` (PSNR against the uncompressed
 model, images in [0, 1]). A Lagrangian search (per attribute ``min R_a + lambda D_a``)
@@ -58,6 +62,8 @@ QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
 PROBE_QPS = (6, 18, 30, 42)
 #: Candidate position bits (set coding).
 POSITION_BITS = tuple(range(9, 17))
+#: Candidate opacity thresholds below which Gaussians are pruned (rate-point ``prune.min_opacity``).
+PRUNE_THRESHOLDS = (0.0, 0.005, 0.01, 0.02, 0.05)
 #: A probe holds at least this many Gaussians (all of a smaller cloud) ...
 PROBE_MIN = 20_000
 #: ... or this share of the cloud, in this many runs along the Morton order.
@@ -161,7 +167,8 @@ class Outcome:
         """What ``encode --json`` and the header report about the choice."""
         out = {
             "target": {"kind": self.target.kind, "value": self.target.value},
-            "settings": dict(self.plan.settings),
+            "settings": {**{k: v for k, v in self.plan.settings.items() if k != "prune"},
+                         "min_opacity": self.plan.rate_point.min_opacity},
             "predicted_bytes": round(self.plan.predicted_bytes),
             "predicted_psnr": round(self.plan.predicted_psnr, 3),
             "encodes": self.encodes,
@@ -207,6 +214,8 @@ class RateController:
         self.progress = progress
         self.max_encodes = max_encodes
         self.models_: dict[str, AttributeModel] = {}
+        #: (opacity threshold, share of Gaussians kept, rendered MSE of pruning) per candidate
+        self.prune_: list[tuple[float, float, float]] = [(0.0, 1.0, 0.0)]
         self.overhead_: float = 0.0
         self.stage_: ShStage | None = None
         self.seconds_: dict[str, float] = {}
@@ -238,8 +247,20 @@ class RateController:
                 name, grid, _interpolate_log(PROBE_QPS, rates[name], grid),
                 sensitivity[name] * _interpolate_log(PROBE_QPS, errors[name], grid))
         self.models_["positions"] = self._position_model(sensitivity["positions"])
+        self.prune_ = self._prune_model()
         self.overhead_ = overhead
         return self
+
+    def _prune_model(self) -> list[tuple[float, float, float]]:
+        """Share kept and rendered MSE for each opacity threshold that prunes something (at most 80%)."""
+        opacity = self.cloud.activated_opacities()
+        out = [(0.0, 1.0, 0.0)]
+        for threshold in PRUNE_THRESHOLDS[1:]:
+            keep = opacity >= threshold
+            kept = float(keep.mean())
+            if 0.2 <= kept < 1.0:
+                out.append((threshold, kept, self._rendered_mse(self.cloud.select(np.flatnonzero(keep)))))
+        return out
 
     def _probe(self) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
         """Per attribute, bytes (scaled to the whole cloud) and attribute MSE at each probe QP."""
@@ -318,20 +339,41 @@ class RateController:
         return min(feasible, key=lambda p: (p.predicted_bytes, p.predicted_mse))
 
     def _hull(self) -> list[Plan]:
-        """Plans along the lower convex hull of (bytes, rendered MSE): one per Lagrange multiplier."""
+        """Plans along the lower convex hull of (bytes, rendered MSE): one per Lagrange multiplier and
+        pruning threshold (pruning scales every attribute's bytes by the share kept)."""
         plans: dict[tuple, Plan] = {}
-        for lam in np.geomspace(1e-3, 1e15, 400):
-            settings = {name: int(m.choices[m.best(lam)]) for name, m in self.models_.items()}
-            key = tuple(sorted(settings.items()))
-            if key not in plans:
-                plans[key] = self._predict(settings)
+        positions = self.models_["positions"]
+        for prune, (_, kept, _) in enumerate(self.prune_):
+            position_bytes = np.array([self._position_bytes(int(b), prune) for b in positions.choices])
+            for lam in np.geomspace(1e-3, 1e15, 400):
+                settings = {name: int(m.choices[m.best(lam / kept)]) for name, m in self.models_.items()
+                            if name != "positions"}
+                settings["positions"] = int(positions.choices[np.argmin(position_bytes + lam * positions.mse)])
+                settings["prune"] = prune
+                key = tuple(sorted(settings.items()))
+                if key not in plans:
+                    plans[key] = self._predict(settings)
         return list(plans.values())
 
     def _predict(self, settings: dict[str, int]) -> Plan:
         """Bytes and rendered MSE the models predict for ``settings``, corrected by the encodes so far."""
-        size = self._overhead_bytes() + sum(self._bytes(name, settings[name]) for name in self.models_)
-        mse = sum(m.mse[np.searchsorted(m.choices, settings[n])] for n, m in self.models_.items())
+        prune = settings.get("prune", 0)
+        _, kept, prune_mse = self.prune_[prune]
+        size = self._overhead_bytes() + self._position_bytes(settings["positions"], prune) + sum(
+            kept * self._bytes(name, settings[name]) for name in self.models_ if name != "positions")
+        mse = prune_mse + sum(m.mse[np.searchsorted(m.choices, settings[n])] for n, m in self.models_.items())
         return Plan(settings, size, mse * self._error_fix, self._rate_point(settings))
+
+    def _position_bytes(self, bits: int, prune: int) -> float:
+        """Set-coded positions at ``bits`` after pruning: measured, else the unpruned size scaled by the
+        share kept plus the gaps' growth (log2(1/kept) bits each)."""
+        exact = self._exact.get("positions", {})
+        if bits in exact:
+            return exact[bits]
+        model = self.models_["positions"]
+        kept = self.prune_[prune][1]
+        full = model.bytes[np.searchsorted(model.choices, bits)]
+        return kept * (full + self.cloud.num_gaussians * math.log2(1.0 / kept) / 8.0)
 
     def _bytes(self, name: str, choice: int) -> float:
         """One attribute's bytes at ``choice``: measured when an encode coded it so (the bytes of a chunk
@@ -355,9 +397,11 @@ class RateController:
         """Remember what each attribute of ``plan``'s encode cost (the positions fix the grid: their
         setting is the same for every later plan of this target)."""
         sizes = _model_sizes(stream)
+        kept = self.prune_[plan.settings.get("prune", 0)][1]
         for name in self.models_:
-            if sizes.get(name, 0) > 0:
-                self._exact.setdefault(name, {})[plan.settings[name]] = float(sizes[name])
+            if sizes.get(name, 0) > 0:  # kept unpruned-equivalent; positions as measured (see _position_bytes)
+                scale = 1.0 if name == "positions" else 1.0 / kept
+                self._exact.setdefault(name, {})[plan.settings[name]] = float(sizes[name]) * scale
         coded = sum(sizes.get(name, 0) for name in self.models_)
         self._exact["overhead"] = {0: float(stream.total_bytes() - coded)}
 
@@ -366,17 +410,20 @@ class RateController:
         point = self.template
         attributes = dict(point.attributes)
         for name, value in settings.items():
+            if name == "prune":
+                continue
             key = "sh_features" if name == "sh" else name
             field_name = "bits" if name == "positions" else "qp"
             attributes[key] = dataclasses.replace(attributes[key], **{field_name: int(value)})
-        return dataclasses.replace(point, attributes=attributes, name=f"{point.name}+auto")
+        min_opacity = self.prune_[settings.get("prune", 0)][0]
+        return dataclasses.replace(point, attributes=attributes, name=f"{point.name}+auto", min_opacity=min_opacity)
 
     # ----------------------------------------------------------- encode
     def encode(self, target: Target) -> Outcome:
         """Plan, encode, correct and re-encode until the target is met (see module docstring).
 
-        After the first encode the position bits stay fixed (changing them re-sorts the grid, so
-        no coded chunk could be reused); the QPs move by single steps, the cheapest error per
+        After the first encode the position bits and the pruning stay fixed (changing them
+        re-sorts the grid, so no coded chunk could be reused); the QPs move by single steps, the cheapest error per
         byte first, with the rate and error models scaled by what the last encode measured.
         """
         if not self.models_:
