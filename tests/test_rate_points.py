@@ -181,5 +181,7 @@ def test_the_ladder_spans_the_rates_monotonically():
     for name in ("opacity", "rotation", "scale", "sh_dc", "sh_features"):
         qps = [p.attributes[name].qp for p in points]
         assert qps == sorted(qps, reverse=True), name
+    pruning = [p.min_opacity for p in points]
+    assert pruning == sorted(pruning, reverse=True) and pruning[-1] == 0.0
     bits = [p.attributes["positions"].bits for p in points]
     assert bits == sorted(bits) and bits[0] == 10 and bits[-1] == 16 and all(p.positions_as_set for p in points)
