@@ -100,7 +100,7 @@ def test_trailing_bytes_and_unknown_version(encoded):
         Bitstream.from_bytes(encoded + b"\0")
     future = bytearray(encoded)
     future[8:10] = (2).to_bytes(2, "little")
-    with pytest.raises(BitstreamError, match="version 2"):
+    with pytest.raises(BitstreamError, match="deflated header does not inflate"):  # a 1.0 header relabelled 2.0
         Bitstream.from_bytes(bytes(future))
 
 

@@ -13,9 +13,10 @@ Layout (all integers little-endian)::
 
 Versions. A stream is written with the oldest version that can hold it: 1.0 when it
 uses no optional feature (so files that 1.0 decoders read stay byte-identical), else
-2.0 with ``header["features"]``, the sorted names of the features it needs (see
-:data:`FEATURES`). A decoder refuses a feature it does not know, naming it, instead of
-decoding the stream wrongly.
+2.0, whose header is deflated (zlib; the header length and CRC are of the stored bytes)
+and lists in ``header["features"]`` the sorted names of the features the stream needs
+(see :data:`FEATURES`). A decoder refuses a feature it does not know, naming it, instead
+of decoding the stream wrongly.
 
 Each chunk-table entry is ``{"name", "size", "crc32", ...}`` plus whatever the
 writer records about the chunk (codec name/version/options, plane shape, bit
@@ -118,8 +119,13 @@ class Bitstream:
         header["chunks"] = [c.table_entry() for c in self.chunks]
         return json.dumps(header, separators=(",", ":"), sort_keys=False, allow_nan=False).encode("utf-8")
 
-    def to_bytes(self) -> bytes:
+    def stored_header(self) -> bytes:
+        """The header as written: the JSON (version 1), deflated with zlib (version 2)."""
         header = self.header_bytes()
+        return zlib.compress(header, 9) if self.write_version()[0] >= 2 else header
+
+    def to_bytes(self) -> bytes:
+        header = self.stored_header()
         preamble = _PREAMBLE.pack(MAGIC, *self.write_version(), len(header), zlib.crc32(header))
         return b"".join([preamble, header, *(c.data for c in self.chunks)])
 
@@ -147,7 +153,7 @@ class Bitstream:
         raw_header = data[PREAMBLE_SIZE : PREAMBLE_SIZE + header_len]
         if zlib.crc32(raw_header) != header_crc:
             raise BitstreamError("corrupt .gsc file: header CRC32 mismatch")
-        header = parse_header_json(raw_header)
+        header = parse_header_json(_inflate_header(raw_header) if major >= 2 else raw_header)
         table = header.pop("chunks", None)
         features = _check_features(header.pop("features", None) if major >= 2 else None, major)
         entries = _check_table(table)
@@ -194,17 +200,17 @@ class Bitstream:
 
     # ------------------------------------------------------------- sizes
     def total_bytes(self) -> int:
-        return PREAMBLE_SIZE + len(self.header_bytes()) + sum(len(c.data) for c in self.chunks)
+        return PREAMBLE_SIZE + len(self.stored_header()) + sum(len(c.data) for c in self.chunks)
 
     def sizes(self) -> dict[str, int]:
-        """Bytes per part: ``"header"`` (preamble + JSON header) then each chunk by name."""
-        out = {"header": PREAMBLE_SIZE + len(self.header_bytes())}
+        """Bytes per part: ``"header"`` (preamble + stored header) then each chunk by name."""
+        out = {"header": PREAMBLE_SIZE + len(self.stored_header())}
         out.update({c.name: len(c.data) for c in self.chunks})
         return out
 
     def attribute_sizes(self) -> dict[str, int]:
         """Bytes per attribute (chunks grouped by their ``attribute`` entry), header included."""
-        out: dict[str, int] = {"header": PREAMBLE_SIZE + len(self.header_bytes())}
+        out: dict[str, int] = {"header": PREAMBLE_SIZE + len(self.stored_header())}
         for chunk in self.chunks:
             key = str(chunk.meta.get("attribute", chunk.name))
             out[key] = out.get(key, 0) + len(chunk.data)
@@ -218,6 +224,20 @@ def is_gsc(path: str | os.PathLike) -> bool:
             return handle.read(len(MAGIC)) == MAGIC
     except OSError:
         return False
+
+
+def _inflate_header(stored: bytes) -> bytes:
+    """A version-2 header's JSON: ``stored`` inflated, at most :data:`MAX_HEADER_BYTES` of it."""
+    inflater = zlib.decompressobj()
+    try:
+        raw = inflater.decompress(stored, MAX_HEADER_BYTES + 1)
+    except zlib.error as exc:
+        raise BitstreamError(f"corrupt .gsc file: the deflated header does not inflate ({exc})") from None
+    if len(raw) > MAX_HEADER_BYTES:
+        raise BitstreamError(f"corrupt .gsc file: the header inflates to more than {MAX_HEADER_BYTES} bytes")
+    if not inflater.eof or inflater.unused_data:
+        raise BitstreamError("corrupt .gsc file: the deflated header is truncated or has trailing bytes")
+    return raw
 
 
 def parse_header_json(raw: bytes) -> dict[str, Any]:
