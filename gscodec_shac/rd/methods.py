@@ -215,7 +215,7 @@ class Auto(Recipe):
     _KINDS = {"bpg": "bpg", "sizes": "size", "psnr": "psnr"}
 
     def check(self, raw: dict[str, Any], base: Path) -> dict[str, Any]:
-        from gscodec_shac.codec.rate_control import TEMPLATE, parse_size
+        from gscodec_shac.codec.rate_control import TEMPLATE, VERSION, parse_size
 
         self.where.only(raw, (*self._KINDS, "template"))
         given = [k for k in self._KINDS if k in raw]
@@ -233,7 +233,7 @@ class Auto(Recipe):
                 self.where.number(value, f"{kind}[{i}]", 0.0, 1e6, open_lo=True)
         template = raw.get("template", TEMPLATE)
         self.where.string(template, "template")
-        return {kind: list(values), "template": template}
+        return {kind: list(values), "template": template, "controller_version": VERSION}
 
     def points(self, params: dict[str, Any], rate_points: tuple[str, ...]) -> tuple[str, ...]:
         kind = next(k for k in self._KINDS if k in params)
