@@ -76,6 +76,7 @@ def encode_file_to_target(
     template: str | RatePoint = TEMPLATE,
     cameras: str | os.PathLike | None = None,
     up: tuple[float, float, float] = (0.0, 0.0, 1.0),
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
     preset: str | None = None,
     progress: bool = False,
 ) -> dict[str, Any]:
@@ -92,7 +93,7 @@ def encode_file_to_target(
     cloud, notes = read_model(in_ply)
     target = target or make_target(cloud.num_gaussians, size=size, bpg=bpg, psnr=psnr)
     views = load_cameras(cameras) if cameras is not None else None
-    controller = RateController(cloud, template, views, up=up, progress=progress,
+    controller = RateController(cloud, template, views, up=up, background=background, progress=progress,
                                 codec_options={"preset": preset} if preset else None)
     outcome = controller.encode(target)
     with inputs_protected(in_ply, *([cameras] if cameras is not None else [])):

@@ -57,7 +57,7 @@ from gscodec_shac.shac.base import ShStage, make_stage
 #: The template rate point of SHAC-auto.
 TEMPLATE = "shac_auto:template"
 #: Bumped when the controller's choices change for the same input (RD sweeps key their rows on it).
-VERSION = 2
+VERSION = 3
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
 #: QPs at which the probe is encoded; the models interpolate between them (and extrapolate).
@@ -186,7 +186,8 @@ class RateController:
     """Choose the settings of ``template`` that meet a target on ``cloud`` (see module docstring).
 
     ``views``: cameras to judge quality from (default: orbit views around the cloud, with
-    ``up`` as the world up axis). ``workers``/``progress`` as for :class:`Encoder`.
+    ``up`` as the world up axis), rendered over ``background`` (the scene's: a white
+    background weighs errors differently from a black one). ``workers``/``progress`` as for :class:`Encoder`.
     Call :meth:`fit` once, then :meth:`encode` (or :meth:`plan`) for any number of targets.
     """
 
@@ -197,6 +198,7 @@ class RateController:
         views: Sequence[Camera] | None = None,
         *,
         up: Sequence[float] = (0.0, 0.0, 1.0),
+        background: Sequence[float] = (0.0, 0.0, 0.0),
         codec_options: dict[str, Any] | None = None,
         workers: int | None = None,
         progress: bool = False,
@@ -212,6 +214,7 @@ class RateController:
         self.template = point
         self.views = list(views) if views else orbit_views(cloud.means, CALIBRATION_VIEWS, CALIBRATION_WIDTH, up=up)
         self.views = _calibration_views(self.views)
+        self.background = tuple(float(v) for v in background)
         self.workers = workers
         self.progress = progress
         self.max_encodes = max_encodes
@@ -237,7 +240,8 @@ class RateController:
             stage = make_stage(self.template.sh_stage, **self.template.sh_params)
             ac = cloud.ac_matrix()
             self.stage_ = stage.fit(np.concatenate([cloud.sh_dc, ac], axis=1) if stage.uses_dc else ac)
-        self._references = [Renderer(cloud).render(view).image for view in self.views]
+        renderer = Renderer(cloud)
+        self._references = [renderer.render(view, background=self.background).image for view in self.views]
         rates, errors, overhead = self._probe()
         self.seconds_["probe"] = time.perf_counter() - tic
         tic = time.perf_counter()
@@ -314,7 +318,7 @@ class RateController:
         from gscodec_shac.render import Renderer
 
         renderer = Renderer(cloud)
-        return float(np.mean([np.mean((renderer.render(v).image - ref) ** 2)
+        return float(np.mean([np.mean((renderer.render(v, background=self.background).image - ref) ** 2)
                               for v, ref in zip(self.views, self._references)]))
 
     # ------------------------------------------------------------- plan

@@ -45,6 +45,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     target.add_argument("--target-psnr", type=float, metavar="DB",
                         help="the lowest PSNR (dB) against the uncompressed model on --cameras (else orbit views)")
     target.add_argument("--cameras", help="views the quality is judged from (any camera file or capture folder)")
+    target.add_argument("--background", default="0,0,0",
+                        help="background colour R,G,B in [0, 1] the views are rendered over (default 0,0,0; "
+                        "NeRF-synthetic scenes use 1,1,1)")
     target.add_argument("--up", default="0,0,1",
                         help="world up axis of the orbit views without --cameras (default 0,0,1; splat-transform "
                         "and most web viewers use 0,1,0 or 0,-1,0)")
@@ -131,6 +134,7 @@ def _run_to_target(args: argparse.Namespace) -> int:
     summary = encode_file_to_target(
         args.input, args.output, size=args.target_size, bpg=args.target_bpg, psnr=args.target_psnr,
         template=args.rate_point or TEMPLATE, cameras=args.cameras, up=tuple(comma_floats(args.up, "--up")),
+        background=tuple(comma_floats(args.background, "--background")),
         preset=args.preset, progress=not args.quiet and sys.stderr.isatty(),
     )
     report_notes(summary["notes"])

@@ -76,6 +76,7 @@ class RunContext:
     key: str
     label: str = ""  # the rate-point label of this run (a rate point, NATIVE or a target)
     calibration_views: Callable[[], list] = list  # the scene's views that are not test views (rate control)
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the scene's render background
 
 
 class Recipe(ABC):
@@ -270,10 +271,11 @@ def _fitted_controller(ctx: RunContext, template: str) -> tuple[Any, float]:
     """One fitted rate controller per (scene file, template, preset) in this process, and the seconds its fit took."""
     from gscodec_shac.codec.rate_control import RateController
 
-    key = (str(ctx.ply_path), template, ctx.preset, ctx.threads)
+    key = (str(ctx.ply_path), template, ctx.preset, ctx.threads, ctx.background)
     if key not in _CONTROLLERS:
         tic = time.perf_counter()
         controller = RateController(ctx.load_cloud(), template, ctx.calibration_views() or None, workers=ctx.threads,
+                                    background=ctx.background,
                                     codec_options={"preset": ctx.preset} if ctx.preset else None).fit()
         _CONTROLLERS.clear()  # keep one scene's controller at a time
         _CONTROLLERS[key] = (controller, time.perf_counter() - tic)

@@ -142,7 +142,7 @@ def _run_once(task: RunTask) -> dict[str, Any]:
         sort=task.settings.sort, preset=task.settings.preset, threads=task.threads,
         cache_dir=cache_dir if task.settings.cache_sort else None, work_dir=work_dir,
         fault_dir=out_dir / "cache" / "faults", key=task.key, label=task.rate_point_name,
-        calibration_views=lambda: calibration_views(task.scene),
+        calibration_views=lambda: calibration_views(task.scene), background=tuple(task.scene.spec.background),
     )
     try:
         outcome = RECIPES.get(task.method.recipe).run(ctx, task.method.params)
