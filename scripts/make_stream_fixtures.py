@@ -15,6 +15,7 @@ and compares the hashes (golden hashes). Run it once per container version, neve
 "fix" a failing test:
 
     python scripts/make_stream_fixtures.py --version 1.0
+    python scripts/make_stream_fixtures.py --version 2.0
 """
 
 from __future__ import annotations
@@ -28,8 +29,8 @@ import numpy as np
 
 FIXTURES = Path(__file__).resolve().parents[1] / "tests" / "fixtures" / "streams"
 
-#: case -> (input, rate point, SH stage, stage parameters, sort override)
-CASES: dict[str, dict] = {
+#: Container 1.0 cases: case -> (input, rate point, SH stage, stage parameters, sort override)
+CASES_V1: dict[str, dict] = {
     "table3_rp2_none": {"input": "input_sh3.ply", "rate_point": "paper_table3:rp2", "sh": "none", "params": {}},
     "table3_rp1_pca": {"input": "input_sh3.ply", "rate_point": "paper_table3:rp1", "sh": "pca",
                        "params": {"energy_retention": 0.95}},
@@ -46,6 +47,16 @@ CASES: dict[str, dict] = {
     "custom_lossless_drop": {"input": "input_sh3.ply", "rate_point": "custom_points.yaml:lossless_drop", "sh": None,
                              "params": {}},
 }
+#: Container 2.0 cases: set-coded positions (feature positions_set), pruning, water-filled SH QPs,
+#: a deflated header.
+CASES_V2: dict[str, dict] = {
+    "ladder_rp1_none": {"input": "input_sh3.ply", "rate_point": "shac_ladder:rp1", "sh": "none", "params": {}},
+    "ladder_rp6_pca": {"input": "input_sh3.ply", "rate_point": "shac_ladder:rp6", "sh": "pca",
+                       "params": {"energy_retention": 0.97}},
+    "auto_template_waterfill": {"input": "input_sh3.ply", "rate_point": "shac_auto:template", "sh": None, "params": {}},
+    "ladder_rp4_sh0": {"input": "input_sh0.ply", "rate_point": "shac_ladder:rp4", "sh": None, "params": {}},
+}
+CASES = {"1.0": CASES_V1, "2.0": CASES_V2}
 
 
 def write_inputs() -> None:
@@ -87,6 +98,8 @@ def decoded_arrays(data: bytes) -> dict[str, np.ndarray]:
 
 
 def main() -> None:
+    from gscodec_shac.codec import Bitstream
+
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", required=True, help="container version folder, e.g. 1.0")
     args = parser.parse_args()
@@ -94,11 +107,11 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     write_inputs()
     manifest = {"container_version": args.version, "cases": {}}
-    for name, case in CASES.items():
+    for name, case in CASES[args.version].items():
         data = encode_case(case)
         (out / f"{name}.gsc").write_bytes(data)
         np.savez_compressed(out / f"{name}.npz", **decoded_arrays(data))
-        header = json.loads(data[20 : 20 + int.from_bytes(data[12:16], "little")])
+        header = Bitstream.from_bytes(data).header
         manifest["cases"][name] = {**case, "sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data),
                                    "codecs": [c["version"] for c in header["codecs"]]}
         print(f"{name}: {len(data):,} bytes")
