@@ -32,7 +32,7 @@ RENDER_BYTES_PER_PIXEL = 128
 #: Environment variable that caps the memory budget (bytes, or with a K/M/G/T suffix).
 MEMORY_ENV = "GSCODEC_MAX_MEMORY"
 
-_SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([kmgt]?)i?b?\s*$", re.IGNORECASE)
+_SIZE = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*([kmgt]?)(i?)(b|bytes?)?\s*$", re.IGNORECASE)
 
 
 def json_nesting(data: bytes) -> int:
@@ -57,12 +57,18 @@ def json_nesting(data: bytes) -> int:
 
 
 def parse_size(text: str) -> int:
-    """``"4G"``, ``"512M"``, ``"1000000"`` -> bytes; ValueError for anything else."""
-    match = _SIZE.match(text)
+    """A size in bytes: ``"1200000"``, ``"800kB"``, ``"2.5MB"`` (powers of 1000), ``"3MiB"`` or the
+    memory-style ``"512M"``, ``"4G"`` (powers of 1024); ValueError for anything else or a size <= 0."""
+    match = _SIZE.match(str(text))
     if not match:
-        raise ValueError(f"{text!r} is not a size such as 512M or 4G")
-    scale = 1 << (10 * " kmgt".index(match.group(2).lower() or " "))
-    return int(float(match.group(1)) * scale)
+        raise ValueError(f"{text!r} is not a size such as 2.5MB, 800kB, 3MiB, 512M or 4G")
+    number, prefix, binary, unit = match.groups()
+    power = " kmgt".index(prefix.lower() or " ")
+    base = 1000 if unit and not binary and prefix else 1024
+    value = int(float(number) * base**power)
+    if value <= 0:
+        raise ValueError(f"{text!r} is not a positive size")
+    return value
 
 
 def memory_budget() -> int:

@@ -165,7 +165,7 @@ def test_the_memory_budget_is_checked_before_allocating(encoded, monkeypatch):
     monkeypatch.setenv("GSCODEC_MAX_MEMORY", "4G")
     assert Decoder().decode(encoded).num_gaussians == 300
     monkeypatch.setenv("GSCODEC_MAX_MEMORY", "lots")
-    with pytest.raises(GscodecError, match=r"\$GSCODEC_MAX_MEMORY: 'lots' is not a size such as 512M or 4G"):
+    with pytest.raises(GscodecError, match=r"\$GSCODEC_MAX_MEMORY: 'lots' is not a size such as 2.5MB, 800kB, 3MiB, 512M or 4G"):
         Decoder().decode(encoded)
 
 

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -51,6 +50,7 @@ from gscodec_shac.codec.encoder import Encoder
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode, set_order
 from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
 from gscodec_shac.errors import GscodecError, ValidationError
+from gscodec_shac import limits
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.shac.base import ShStage, make_stage
 
@@ -93,19 +93,12 @@ class Target:
         return f"{self.value:,.0f} bytes" if self.kind == "bytes" else f"{self.value:.2f} dB PSNR"
 
 
-_SIZE = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*(b|bytes?|kb|kib|mb|mib|gb|gib)?\s*$", re.IGNORECASE)
-_UNITS = {"b": 1, "byte": 1, "bytes": 1, "kb": 1e3, "kib": 1024, "mb": 1e6, "mib": 1024**2, "gb": 1e9, "gib": 1024**3}
-
-
 def parse_size(text: str) -> float:
-    """``"2.5MB"`` -> 2.5e6 bytes (units b, kB, MB, GB and KiB, MiB, GiB; no unit: bytes)."""
-    match = _SIZE.match(str(text))
-    if not match:
-        raise ValidationError(f"size {text!r} is not a number with an optional unit (B, kB, MB, GB, KiB, MiB, GiB)")
-    value = float(match.group(1)) * _UNITS[(match.group(2) or "b").lower()]
-    if value <= 0:
-        raise ValidationError(f"size {text!r} must be positive")
-    return value
+    """``"2.5MB"`` -> 2.5e6 bytes (:func:`gscodec_shac.limits.parse_size`), a ValidationError otherwise."""
+    try:
+        return float(limits.parse_size(text))
+    except ValueError as exc:
+        raise ValidationError(f"size {exc}") from None
 
 
 def make_target(n_gaussians: int, size: str | None = None, bpg: float | None = None,
