@@ -52,16 +52,17 @@ def grid_z_cells(shape: tuple[int, int]) -> np.ndarray:
 
 
 def morton_codes_2d(ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
-    """Interleave the bits of integer cell coordinates (x in the even bits)."""
-    ys = ys.astype(np.uint64)
-    xs = xs.astype(np.uint64)
-    codes = np.zeros(ys.shape, dtype=np.uint64)
-    one = np.uint64(1)
-    for bit in range(31):
-        b = np.uint64(bit)
-        codes |= ((xs >> b) & one) << np.uint64(2 * bit)
-        codes |= ((ys >> b) & one) << np.uint64(2 * bit + 1)
-    return codes
+    """Interleave the bits of integer cell coordinates below 2**31 (x in the even bits)."""
+    return _spread_2d(xs) | (_spread_2d(ys) << np.uint64(1))
+
+
+def _spread_2d(v: np.ndarray) -> np.ndarray:
+    """Bit i of each integer (< 2**32) at bit 2i (the 'part 1 by 1' of 2-D Morton codes)."""
+    x = np.asarray(v).astype(np.uint64) & np.uint64(0xFFFFFFFF)
+    for shift, mask in ((16, 0x0000FFFF0000FFFF), (8, 0x00FF00FF00FF00FF), (4, 0x0F0F0F0F0F0F0F0F),
+                        (2, 0x3333333333333333), (1, 0x5555555555555555)):
+        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
+    return x
 
 
 def morton_order(points: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
