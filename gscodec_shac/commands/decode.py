@@ -16,8 +16,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "the format: .ply (Inria 3DGS, any viewer opens it), .spz, .splat, .sog or .pt (a gsplat checkpoint).",
         examples=["gscodec-shac decode scene.gsc decoded.ply", "gscodec-shac decode scene.gsc decoded.spz"],
     )
-    parser.add_argument("input", help="input .gsc")
-    parser.add_argument("output", help="output model: .ply (Inria 3DGS), .spz, .splat, .sog or .pt (gsplat checkpoint)")
+    parser.add_argument("input", metavar="IN.gsc", help="input .gsc")
+    parser.add_argument("output", metavar="OUT", help="output model: .ply (Inria 3DGS), .spz, .splat, .sog or .pt "
+                        "(gsplat checkpoint)")
     add_quiet(parser)
     add_force(parser)
     parser.set_defaults(func=run)

@@ -36,9 +36,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         examples=["gscodec-shac encode scene.ply scene.gsc --rate-point paper_table3:rp2 --sh pca --er 0.99",
                   "gscodec-shac encode scene.ply scene.gsc --target-size 2.5MB"],
     )
-    parser.add_argument("input", help="input model: Inria .ply, .compressed.ply, .spz, .splat, .sog, SOG meta.json "
-                        "(or its folder), gsplat checkpoint .pt")
-    parser.add_argument("output", help="output .gsc (written atomically)")
+    parser.add_argument("input", metavar="IN", help="input model: Inria .ply, .compressed.ply, .spz, .splat, .sog, "
+                        "SOG meta.json (or its folder), gsplat checkpoint .pt")
+    parser.add_argument("output", metavar="OUT.gsc", help="output .gsc (written atomically)")
     parser.add_argument("--rate-point", "-r", metavar="SET:POINT",
                         help="e.g. paper_table3:rp2, mpeg_ctc_video:rp01, gsplat_png, my.yaml:fast (default: "
                         "paper_table3:rp2; with a target: the template shac_auto:template); list them with "

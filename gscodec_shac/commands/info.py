@@ -18,8 +18,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "chunk, QPs and codecs).",
         examples=["gscodec-shac info scene.gsc", "gscodec-shac info scene.ply --json"],
     )
-    parser.add_argument("file", help="a .gsc file or a model: Inria .ply, .compressed.ply, .spz, .splat, .sog, "
-                        "SOG meta.json (or its folder), gsplat checkpoint .pt")
+    parser.add_argument("file", metavar="FILE", help="a .gsc file or a model: Inria .ply, .compressed.ply, .spz, "
+                        ".splat, .sog, SOG meta.json (or its folder), gsplat checkpoint .pt")
     add_json(parser, "the description")
     parser.set_defaults(func=run)
 

@@ -36,7 +36,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         examples=["gscodec-shac render scene.ply renders/ --cameras cameras.json --images images/ --split test",
                   "gscodec-shac render scene.ply orbit/ --orbit-views 24 --up 0,-1,0"],
     )
-    parser.add_argument("scene", help="a model: Inria .ply, .compressed.ply, .spz, .splat, .sog, SOG meta.json, gsplat .pt")
+    parser.add_argument("scene", metavar="SCENE", help="a model: Inria .ply, .compressed.ply, .spz, .splat, .sog, "
+                        "SOG meta.json, gsplat .pt")
     add_output(parser, "OUT_DIR", "output directory for the PNGs and metrics.json (created)")
     parser.add_argument("--cameras", help="cameras.json, transforms*.json, poses_bounds.npy, a COLMAP model "
                         "or a capture folder; default: an orbit around the scene")
