@@ -23,7 +23,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/gscodec-shac demo --out $(DEMO_OUT)
+	$(BIN)/gscodec-shac demo $(DEMO_OUT)
 
 # The tests also cover the Ray executor and the gsplat drop-in, so they install those extras.
 $(TEST_STAMP): $(STAMP)

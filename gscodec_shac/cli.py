@@ -23,10 +23,11 @@ import pkgutil
 import signal
 import sys
 import warnings
-from typing import Iterator, Sequence
+from typing import Iterator, NoReturn, Sequence
 
 from gscodec_shac import __version__, commands
 from gscodec_shac import errors
+from gscodec_shac.commands._options import resolve_args
 from gscodec_shac.errors import GscodecError
 
 #: Exit statuses, as ``--help`` lists them.
@@ -55,13 +56,23 @@ class Interrupted(KeyboardInterrupt):
     at exit even when it was handled, exits with our status 130."""
 
 
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse's parser, except that a bad command line is one line ``error: ...`` (status 2)
+    pointing at ``--help``, like every other user mistake (subcommand parsers share the class)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(errors.EXIT_USAGE, f"error: {self.prog}: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     epilog = "exit status:\n" + "\n".join(f"  {code:>3}  {what}" for code, what in EXIT_CODES)
     epilog += ("\n\nCommands that write files refuse an existing output unless --force and never write over "
                "an input.\nSee docs/reliability.md for the limits on untrusted input.")
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="gscodec-shac",
-        description="Low-rank SH compression (SHAC) for 2D-mapped 3D Gaussian Splatting codecs.",
+        description="Low-rank SH compression (SHAC) for 2D-mapped 3D Gaussian Splatting codecs.\n\n"
+        "Example:\n  gscodec-shac encode scene.ply scene.gsc --rate-point paper_table3:rp2 --sh pca --er 0.99\n\n"
+        "Every command: gscodec-shac COMMAND --help (all of them in docs/cli.md).",
         epilog=epilog,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -80,14 +91,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = _parse_args(parser, argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 1
     debug = bool(args.debug or os.environ.get(DEBUG_ENV, "") not in ("", "0"))
     try:
         with _signals_as_exceptions(), _warnings_as_lines(debug):
-            result = int(args.func(args) or 0)
+            result = int(args.func(resolve_args(args)) or 0)
             sys.stdout.flush()
         return result
     except GscodecError as exc:
@@ -115,6 +126,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         from gscodec_shac.atomic import release_inputs
 
         release_inputs()
+
+
+def _parse_args(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace:
+    """``parser.parse_args``, except that a positional output left over after options
+    (``rd-report RESULTS --x-axis bpg OUT``: argparse gives an optional positional nothing once
+    the positionals before it are taken) still becomes the output."""
+    args, extras = parser.parse_known_args(argv)
+    if (len(extras) == 1 and not extras[0].startswith("-") and getattr(args, "output_spec", None) is not None
+            and args.out is None):
+        args.out = extras[0]
+    elif extras:
+        commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+        commands.get(getattr(args, "command", None), parser).error(f"unrecognized arguments: {' '.join(extras)}")
+    return args
 
 
 def _fail(message: str, code: int) -> int:

@@ -200,6 +200,7 @@ class Encoder:
             return None, None
         # a caller's stage is copied: water-filling may drop features of the copy
         stage = copy.deepcopy(self._stage_instance) or make_stage(self.rate_point.sh_stage, **self.rate_point.sh_params)
+        stage.progress = self.progress
         ac = cloud.ac_matrix()
         if stage.uses_dc:
             ac = np.concatenate([cloud.sh_dc, ac], axis=1)

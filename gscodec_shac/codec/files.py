@@ -124,7 +124,7 @@ def decode_file(in_gsc: str | os.PathLike, out_ply: str | os.PathLike, *, progre
     check_model_extension(out_ply)
     cloud = Decoder(progress=progress).decode(stream)
     with inputs_protected(in_gsc):
-        notes = write_model(out_ply, cloud)
+        notes = write_model(out_ply, cloud, progress=progress)
     return {
         "input": str(in_gsc),
         "output": str(out_ply),

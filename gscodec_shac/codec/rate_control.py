@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from gscodec_shac.camera import Camera, orbit_views
 from gscodec_shac.codec import quantize as qz
@@ -233,24 +234,30 @@ class RateController:
             stage = make_stage(self.template.sh_stage, **self.template.sh_params)
             ac = cloud.ac_matrix()
             self.stage_ = stage.fit(np.concatenate([cloud.sh_dc, ac], axis=1) if stage.uses_dc else ac)
-        renderer = Renderer(cloud)
-        self._references = [renderer.render(view, background=self.background).image for view in self.views]
-        rates, errors, overhead = self._probe()
-        self.seconds_["probe"] = time.perf_counter() - tic
-        tic = time.perf_counter()
-        sensitivity = self._sensitivities(errors)
-        self.seconds_["calibrate"] = time.perf_counter() - tic
+        probes = len(PROBE_QPS)
+        attributes = len(QP_ATTRIBUTES) - (0 if self.stage_ is not None else 1)
+        renders = 1 + attributes + 1 + len(PRUNE_THRESHOLDS) - 1  # references, perturbed attributes, positions, pruning
+        with tqdm(total=probes + renders, desc="rate control: calibrate", unit="step", disable=not self.progress,
+                  leave=False) as bar:
+            renderer = Renderer(cloud)
+            self._references = [renderer.render(view, background=self.background).image for view in self.views]
+            bar.update(1)
+            rates, errors, overhead = self._probe(bar)
+            self.seconds_["probe"] = time.perf_counter() - tic
+            tic = time.perf_counter()
+            sensitivity = self._sensitivities(errors, bar)
+            self.prune_ = self._prune_model(bar)
+            self.seconds_["calibrate"] = time.perf_counter() - tic
         grid = np.arange(0, 52)
         for name in rates:
             self.models_[name] = AttributeModel(
                 name, grid, _interpolate_log(PROBE_QPS, rates[name], grid),
                 sensitivity[name] * _interpolate_log(PROBE_QPS, errors[name], grid))
         self.models_["positions"] = self._position_model(sensitivity["positions"])
-        self.prune_ = self._prune_model()
         self.overhead_ = overhead
         return self
 
-    def _prune_model(self) -> list[tuple[float, float, float]]:
+    def _prune_model(self, bar: Any = None) -> list[tuple[float, float, float]]:
         """Share kept and rendered MSE for each opacity threshold that prunes something (at most 80%)."""
         opacity = self.cloud.activated_opacities()
         out = [(0.0, 1.0, 0.0)]
@@ -259,10 +266,13 @@ class RateController:
             kept = float(keep.mean())
             if 0.2 <= kept < 1.0:
                 out.append((threshold, kept, self._rendered_mse(self.cloud.select(np.flatnonzero(keep)))))
+            if bar is not None:
+                bar.update(1)
         return out
 
-    def _probe(self) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
-        """Per attribute, bytes (scaled to the whole cloud) and attribute MSE at each probe QP."""
+    def _probe(self, bar: Any = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
+        """Per attribute, bytes (scaled to the whole cloud) and attribute MSE at each probe QP
+        (``bar``: a progress bar advanced once per probe)."""
         probe = _probe_sample(self.cloud)
         scale = self.cloud.num_gaussians / probe.num_gaussians
         names = [a for a in QP_ATTRIBUTES if a != "sh" or self.stage_ is not None]
@@ -280,20 +290,27 @@ class RateController:
                 rates[a][i] = scale * sizes.get(a, 0) + (sizes.get("sh_state", 0) if a == "sh" else 0)
                 errors[a][i] = _attribute_mse(a, source, decoded, point.color == "ycbcr")
             overhead = max(overhead, sizes.get("header", 0))
+            if bar is not None:
+                bar.update(1)
         return rates, errors, overhead
 
-    def _sensitivities(self, errors: dict[str, np.ndarray]) -> dict[str, float]:
-        """Rendered MSE per unit attribute MSE: renders with each attribute perturbed by noise."""
+    def _sensitivities(self, errors: dict[str, np.ndarray], bar: Any = None) -> dict[str, float]:
+        """Rendered MSE per unit attribute MSE: renders with each attribute perturbed by noise (``bar``: a
+        progress bar advanced once per attribute)."""
         rng = np.random.default_rng(0)
         middle = PROBE_QPS.index(30)
         out = {}
         for name, mse in errors.items():
             sigma = math.sqrt(max(float(mse[middle]), 1e-12))
             out[name] = self._rendered_mse(_perturbed(self.cloud, name, sigma, rng)) / sigma**2
+            if bar is not None:
+                bar.update(1)
         bits = 12
         moved = _quantised_positions(self.cloud, bits)
         step_mse = _position_step_mse(self.cloud, bits)
         out["positions"] = self._rendered_mse(moved) / step_mse
+        if bar is not None:
+            bar.update(1)
         return out
 
     def _position_model(self, sensitivity: float) -> AttributeModel:
@@ -433,10 +450,13 @@ class RateController:
         tried: set[tuple] = set()
         best: tuple[Bitstream, Plan, float | None] | None = None
         encodes = 0
+        bar = tqdm(total=self.max_encodes, desc="rate control: encode", unit="encode", disable=not self.progress,
+                   leave=False)
         while plan is not None and encodes < self.max_encodes and _key(plan) not in tried:
             tried.add(_key(plan))
             stream = self._encode(plan, target)
             encodes += 1
+            bar.update(1)
             size = stream.total_bytes()
             self._learn(plan, stream)
             if target.kind == "bytes":
@@ -451,6 +471,7 @@ class RateController:
                 if measured >= target.value and (best is None or size < best[0].total_bytes()):
                     best = (stream, plan, measured)
                 plan = self._adjust(plan, max_mse=10 ** (-target.value / 10))
+        bar.close()
         self.seconds_["encode"] = time.perf_counter() - tic
         if best is None:
             raise TargetUnreachableError(f"no encode met {target.describe()} in {encodes} tries")

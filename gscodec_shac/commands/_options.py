@@ -1,11 +1,153 @@
 """Option parsing shared by several commands (not a command itself: the leading underscore
-keeps it out of the CLI's command discovery)."""
+keeps it out of the CLI's command discovery).
+
+One convention across commands: positional input and output where a command has one of
+each, the same option for the same thing (``--images``, ``--resolution-scale``,
+``--threads``, ``-q/--quiet``, ``--json``, ``--force``), an ``Example:`` in every
+command's description. Earlier spellings (``--out``, ``--images-dir``, ``--scale``) keep
+working as hidden aliases (:func:`add_alias`, :func:`add_output`).
+"""
 
 from __future__ import annotations
 
+import argparse
 import math
+import sys
+import textwrap
+from dataclasses import dataclass
+from typing import Sequence
 
 from gscodec_shac.errors import GscodecError
+
+#: Descriptions are filled to this width (they keep their lines, so the Example: block stays as written).
+DESCRIPTION_WIDTH = 79
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Descriptions keep their lines; an output that may also come as the hidden ``--out`` is shown
+    without brackets in the usage when it is required."""
+
+    def _format_args(self, action: argparse.Action, default_metavar: str) -> str:
+        if getattr(action, "shown_required", False):
+            return "%s" % self._metavar_formatter(action, default_metavar)(1)
+        return super()._format_args(action, default_metavar)
+
+
+def add_command(
+    subparsers: argparse._SubParsersAction, name: str, *, help: str, description: str, examples: Sequence[str]
+) -> argparse.ArgumentParser:
+    """A subcommand's parser: ``description`` (paragraphs filled) followed by an ``Example:`` block."""
+    paragraphs = [textwrap.fill(" ".join(p.split()), DESCRIPTION_WIDTH) for p in description.split("\n\n")]
+    label = "Example:" if len(examples) == 1 else "Examples:"
+    text = "\n\n".join(paragraphs) + f"\n\n{label}\n" + "\n".join(f"  {example}" for example in examples)
+    return subparsers.add_parser(name, help=help, description=text, formatter_class=HelpFormatter)
+
+
+@dataclass(frozen=True)
+class OutputSpec:
+    """How a command's positional output is resolved (:func:`resolve_args`)."""
+
+    command: str
+    metavar: str
+    default: str | None
+    required: bool
+
+
+def add_output(parser: argparse.ArgumentParser, metavar: str, help: str, *, default: str | None = None,
+               required: bool = True) -> None:
+    """The output as a positional ``args.out``; the earlier ``--out X`` spelling still works, hidden."""
+    action = parser.add_argument("out", nargs="?", metavar=metavar, default=None, help=help)
+    action.shown_required = required  # type: ignore[attr-defined]
+    parser.add_argument("--out", dest="out_option", default=None, help=argparse.SUPPRESS)
+    parser.set_defaults(output_spec=OutputSpec(parser.prog.split()[-1], metavar, default, required))
+
+
+def add_alias(container: argparse._ActionsContainer, old: str, action: argparse.Action) -> None:
+    """``old``: an earlier spelling of ``action``'s option, still accepted, not shown in the help
+    (add it right after the group's other members: argparse lays out a group's usage in order)."""
+    container.add_argument(old, dest=action.dest, type=action.type, choices=action.choices, metavar=action.metavar,
+                           default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+
+
+#: What ``--up`` means, the same for every command that makes orbit views (docs/cli.md, "The up axis").
+UP_HELP = ("x,y,z in the model's own coordinates (default 0,0,1: +Z up, as the synthetic scene and "
+           "NeRF-synthetic/D-NeRF captures). 3DGS PLYs trained from COLMAP are mostly -Y up: pass 0,-1,0, the "
+           "up that splat-transform and SuperSplat show for .ply/.spz/.splat/.sog files (they turn them 180 "
+           "degrees about Z into their +Y-up world)")
+
+
+def add_up(container: argparse._ActionsContainer, what: str) -> None:
+    """``--up X,Y,Z``: the world up axis of ``what`` (see :data:`UP_HELP`)."""
+    container.add_argument("--up", default="0,0,1", metavar="X,Y,Z", help=f"world up axis of {what}: {UP_HELP}")
+
+
+def add_quiet(parser: argparse.ArgumentParser) -> None:
+    """``-q/--quiet``: no progress bars (they are also off when stderr is not a terminal)."""
+    parser.add_argument("-q", "--quiet", action="store_true",
+                        help="no progress bars (they are also off when stderr is not a terminal)")
+
+
+def add_json(parser: argparse.ArgumentParser, what: str = "the summary") -> None:
+    """``--json``: print ``what`` as JSON instead of text."""
+    parser.add_argument("--json", action="store_true", help=f"print {what} as JSON instead of text")
+
+
+def add_threads(parser: argparse.ArgumentParser, what: str, default: str = "all cores") -> None:
+    """``--threads N``, by default all cores (:func:`all_cores`); ``what`` says which threads."""
+    parser.add_argument("--threads", type=int, metavar="N", help=f"{what} (default: {default})")
+
+
+def add_force(parser: argparse.ArgumentParser) -> None:
+    """``--force``: replace existing outputs (inputs are never written over, even with it)."""
+    parser.add_argument("--force", action="store_true",
+                        help="replace existing output files (an input is never overwritten, even with --force)")
+
+
+def resolve_args(args: argparse.Namespace) -> argparse.Namespace:
+    """After parsing: the hidden ``--out`` alias folded into the positional output (one clear error
+    when both differ or neither is given), and ``args.quiet`` set when stderr is not a terminal."""
+    spec = getattr(args, "output_spec", None)
+    if spec is not None:
+        alias = args.out_option
+        if alias is not None and args.out is not None and alias != args.out:
+            raise GscodecError(f"the output is given twice ({args.out} and --out {alias}); "
+                               f"give it once as {spec.metavar}")
+        args.out = args.out if args.out is not None else alias if alias is not None else spec.default
+        if args.out is None and spec.required:
+            raise GscodecError(f"{spec.command} needs an output {spec.metavar} "
+                               f"(see gscodec-shac {spec.command} --help)")
+    if hasattr(args, "quiet") and not args.quiet and not _is_terminal(sys.stderr):
+        args.quiet = True
+    return args
+
+
+def _is_terminal(stream: object) -> bool:
+    try:
+        return bool(stream.isatty())  # type: ignore[attr-defined]
+    except (AttributeError, ValueError):
+        return False
+
+
+def show_progress(args: argparse.Namespace) -> bool:
+    """Progress bars for this command: not ``-q`` and stderr a terminal (see :func:`resolve_args`)."""
+    return not getattr(args, "quiet", False) and _is_terminal(sys.stderr)
+
+
+def all_cores() -> int:
+    """The cores this process may run on (its CPU affinity), the default of every ``--threads``."""
+    import os
+
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def check_threads(threads: int | None) -> int | None:
+    """``--threads``: None (all cores) or a positive integer, else one clear error."""
+    if threads is not None and threads < 1:
+        raise GscodecError(f"--threads must be at least 1, got {threads}")
+    return threads
 
 
 def comma_floats(text: str, what: str, count: int = 3) -> list[float]:
@@ -20,22 +162,16 @@ def comma_floats(text: str, what: str, count: int = 3) -> list[float]:
 
 
 def resize_cameras(cameras: list, scale: float | None, width: int | None) -> list:
-    """Cameras scaled by ``--scale`` or resized to ``--width`` (aspect kept), else unchanged."""
+    """Cameras scaled by ``--resolution-scale`` or resized to ``--width`` (aspect kept), else unchanged."""
     if scale is not None:
         if not (math.isfinite(scale) and scale > 0):
-            raise GscodecError(f"--scale must be a positive number, got {scale}")
+            raise GscodecError(f"--resolution-scale must be a positive number, got {scale}")
         return [c.scaled(scale) for c in cameras]
     if width is not None:
         if width < 1:
             raise GscodecError(f"--width must be a positive integer, got {width}")
         return [c.resized(width, max(1, round(width * c.height / c.width))) for c in cameras]
     return cameras
-
-
-def add_force(parser) -> None:
-    """``--force``: replace existing outputs (inputs are never written over, even with it)."""
-    parser.add_argument("--force", action="store_true",
-                        help="replace existing output files (an input is never overwritten, even with --force)")
 
 
 def check_results_folder(out, force: bool) -> None:
@@ -52,4 +188,4 @@ def check_results_folder(out, force: bool) -> None:
         (out / "sweep.json").is_file() or (out / "runs.jsonl").is_file()
     ):
         raise OutputError(f"{out}: the folder holds files but no sweep results (sweep.json); choose another "
-                          "--out or pass --force")
+                          "output folder or pass --force")

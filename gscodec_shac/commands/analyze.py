@@ -16,7 +16,7 @@ import io
 import json
 from pathlib import Path
 
-from gscodec_shac.commands._options import add_force
+from gscodec_shac.commands._options import add_command, add_force, add_quiet
 
 #: Columns of the printed table: (header, TableRow field, is a fraction).
 PRINTED = (
@@ -30,24 +30,30 @@ PRINTED = (
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "analyze",
+    parser = add_command(
+        subparsers, "analyze",
         help="low-rank analysis of SH AC coefficients (paper Table I, Fig. 1)",
         description="Rank at an energy-retention target and energy at k components of the SH AC matrix, "
         "for the SVD of the standardised matrix and for degree truncation, per scene and averaged "
-        "(paper Table I); correlation heatmaps (Fig. 1) and ER curves as PNG.",
+        "(paper Table I); with --out, correlation heatmaps (Fig. 1) and ER curves as PNG. Several "
+        "scenes go in, so the output folder stays an option.",
+        examples=["gscodec-shac analyze a.ply b.ply --er 0.95 --k 24 --out analysis/",
+                  "gscodec-shac analyze --synthetic 100000 --seeds 0 1 2"],
     )
-    parser.add_argument("scenes", nargs="*", help="models with SH degree >= 1 (Inria .ply, .spz, .sog, "
-                        "compressed.ply, gsplat .pt, ...)")
+    parser.add_argument("scenes", nargs="*", metavar="SCENE", help="models with SH degree >= 1 (Inria .ply, .spz, "
+                        ".sog, compressed.ply, gsplat .pt, ...)")
     parser.add_argument("--er", type=float, default=0.95, help="energy retention target (default 0.95)")
     parser.add_argument("--k", type=int, default=24, help="components / columns for the energy column (default 24)")
-    parser.add_argument("--out", help="directory for table.json, table.csv and the PNGs (default: print only)")
+    parser.add_argument("--out", metavar="DIR",
+                        help="directory for table.json, table.csv and the PNGs (default: print only)")
     parser.add_argument("--synthetic", type=int, metavar="N", help="also analyse a generated N-Gaussian SH-3 scene")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="seeds of the synthetic scenes (default 0)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0], metavar="SEED",
+                        help="seeds of the synthetic scenes (default 0)")
     parser.add_argument(
         "--drop-untouched", action="store_true",
         help="drop Gaussians whose AC coefficients (f_rest) are all zero before analysing",
     )
+    add_quiet(parser)
     add_force(parser)
     parser.set_defaults(func=run)
 
@@ -69,7 +75,11 @@ def run(args: argparse.Namespace) -> int:
             raise ValidationError(f"{args.out}: --out must be a directory, this is a file")
         check_outputs([Path(args.out) / name for name in ("table.json", "table.csv", "er_curves.png")],
                       force=args.force)
-    results = [_analyse(name, ac, args) for name, ac in _load_scenes(args)]
+    from tqdm import tqdm
+
+    total = len(args.scenes) + (len(args.seeds) if args.synthetic is not None else 0)
+    results = [_analyse(name, ac, args) for name, ac in tqdm(_load_scenes(args), total=total, desc="analyze",
+                                                             unit="scene", disable=args.quiet, leave=False)]
     rows = [row for row, _ in results]
     average = average_row(rows)
     print(format_table(rows, average))
@@ -95,7 +105,7 @@ def _load_scenes(args: argparse.Namespace):
         yield scene_name(Path(path)), cloud.ac_matrix()
     if args.synthetic is not None:
         for seed in args.seeds:
-            cloud = make_synthetic_scene(args.synthetic, seed=seed).cloud
+            cloud = make_synthetic_scene(args.synthetic, seed=seed, progress=not args.quiet).cloud
             yield f"synthetic_{args.synthetic}_s{seed}", cloud.ac_matrix()
 
 

@@ -5,18 +5,21 @@ from __future__ import annotations
 import argparse
 import sys
 
-from gscodec_shac.commands._options import add_force
+from gscodec_shac.commands._options import add_command, add_force, add_quiet
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "decode",
+    parser = add_command(
+        subparsers, "decode",
         help="decompress a .gsc file into a 3DGS PLY any viewer opens",
-        description="Decode a .gsc file into an Inria 3DGS PLY (written atomically).",
+        description="Decode a .gsc file into a 3DGS model, written atomically; the output's extension picks "
+        "the format: .ply (Inria 3DGS, any viewer opens it), .spz, .splat, .sog or .pt (a gsplat checkpoint).",
+        examples=["gscodec-shac decode scene.gsc decoded.ply", "gscodec-shac decode scene.gsc decoded.spz"],
     )
-    parser.add_argument("input", help="input .gsc")
-    parser.add_argument("output", help="output model: .ply (Inria 3DGS), .spz, .splat, .sog or .pt (gsplat checkpoint)")
-    parser.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+    parser.add_argument("input", metavar="IN.gsc", help="input .gsc")
+    parser.add_argument("output", metavar="OUT", help="output model: .ply (Inria 3DGS), .spz, .splat, .sog or .pt "
+                        "(gsplat checkpoint)")
+    add_quiet(parser)
     add_force(parser)
     parser.set_defaults(func=run)
 

@@ -7,7 +7,7 @@ at four sizes in the same range, decodes, renders the held-out orbit views (ever
 scores them against ground truth (the same scene generated without the white SH noise
 that mimics optimisation noise) and against the uncompressed model's renders, and
 writes the RD plot, the BD-rate table (Markdown and JSON) and the per-run results into
-``--out``. It is an RD sweep (:mod:`gscodec_shac.rd`) with a fixed specification, so a
+OUT_DIR. It is an RD sweep (:mod:`gscodec_shac.rd`) with a fixed specification, so a
 repeated call reuses finished runs.
 
 To stay within a few minutes on a busy 2-core machine it codes with x265's ``medium``
@@ -22,28 +22,33 @@ import os
 from pathlib import Path
 from typing import Any
 
+from gscodec_shac.commands._options import add_command, add_output, add_quiet
+
 RATE_POINTS = ["shac_ladder:rp1", "shac_ladder:rp3", "shac_ladder:rp5", "shac_ladder:rp7"]
 #: Sizes (bits per Gaussian) SHAC-auto is asked for: the range the ladder points span.
 AUTO_TARGETS = [40, 75, 130, 220]
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "demo",
+    parser = add_command(
+        subparsers, "demo",
         help="end-to-end demo: synthetic scene, baseline vs SHAC-PCA and SHAC-auto, RD plot + BD-rate",
-        description=(
-            "Generate the synthetic SH-3 scene, code it with the baseline and SHAC-PCA (ER 0.97) at four points "
-            "of the SHAC rate ladder and with SHAC-auto at four sizes, render the held-out views and write the "
-            "RD plot and the BD-rate table. Example: gscodec-shac demo --out demo-output"
-        ),
+        description="Generate the synthetic SH-3 scene, code it with the baseline and SHAC-PCA (ER 0.97) at four "
+        "points of the SHAC rate ladder and with SHAC-auto at four sizes, render the held-out views and write the "
+        "RD plot and the BD-rate table into OUT_DIR (default demo-output). A repeated call reuses finished runs.",
+        examples=["gscodec-shac demo demo-output"],
     )
-    parser.add_argument("--out", default="demo-output", help="output directory (created; reused to resume)")
-    parser.add_argument("-n", "--num-gaussians", type=int, default=30_000, help="Gaussians in the scene (default 30000)")
-    parser.add_argument("--preset", default="medium", help="x265 speed preset (default medium; the rate points use slow)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--workers", type=int, default=2, help="runs executing at once (default 2)")
-    parser.add_argument("--force", action="store_true", help="recompute finished runs")
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    add_output(parser, "OUT_DIR", "output directory (created; reused to resume; default demo-output)",
+               default="demo-output", required=False)
+    parser.add_argument("-n", "--num-gaussians", type=int, default=30_000, metavar="N",
+                        help="Gaussians in the scene, 1000-1000000 (default 30000)")
+    parser.add_argument("--preset", default="medium",
+                        help="x265 speed preset (default medium; the rate points use slow)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the synthetic scene (default 0)")
+    parser.add_argument("--workers", type=int, default=2, metavar="N", help="runs executing at once (default 2)")
+    parser.add_argument("--force", action="store_true", help="recompute finished runs; use a folder that holds "
+                        "other files")
+    add_quiet(parser)
     parser.set_defaults(func=run)
 
 

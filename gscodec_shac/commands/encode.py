@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from gscodec_shac.commands._options import add_force
+from gscodec_shac.commands._options import add_command, add_force, add_json, add_quiet, add_up
 from gscodec_shac.shac.base import STAGES, StageParam
 
 _TYPES = {"int": int, "float": float}
@@ -26,31 +26,37 @@ def stage_options() -> dict[str, list[tuple[str, StageParam]]]:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "encode",
-        help="compress a 3DGS PLY into one .gsc file",
-        description="Compress an Inria 3DGS PLY into a self-describing .gsc file at a rate point "
-        "(a shipped one such as paper_table3:rp2, or FILE.yaml[:POINT]), optionally with an SH stage.",
+    parser = add_command(
+        subparsers, "encode",
+        help="compress a 3DGS model into one .gsc file",
+        description="Compress a 3DGS model (Inria PLY, SPZ, .splat, SOG, compressed.ply, gsplat checkpoint) "
+        "into a self-describing .gsc file at a rate point (a shipped one such as paper_table3:rp2, see "
+        "'gscodec-shac rate-points', or FILE.yaml[:POINT]), optionally with an SH stage; or to a target "
+        "size or quality, with the settings chosen per scene by the rate controller.",
+        examples=["gscodec-shac encode scene.ply scene.gsc --rate-point paper_table3:rp2 --sh pca --er 0.99",
+                  "gscodec-shac encode scene.ply scene.gsc --target-size 2.5MB"],
     )
-    parser.add_argument("input", help="input model: Inria .ply, .compressed.ply, .spz, .splat, .sog, SOG meta.json "
-                        "(or its folder), gsplat checkpoint .pt")
-    parser.add_argument("output", help="output .gsc (written atomically)")
-    parser.add_argument("--rate-point", "-r",
-                        help="FILE:POINT, e.g. paper_table3:rp2, mpeg_ctc_video:rp01, gsplat_png (default: "
-                        "paper_table3:rp2; with a target: the template shac_auto:template)")
+    parser.add_argument("input", metavar="IN", help="input model: Inria .ply, .compressed.ply, .spz, .splat, .sog, "
+                        "SOG meta.json (or its folder), gsplat checkpoint .pt")
+    parser.add_argument("output", metavar="OUT.gsc", help="output .gsc (written atomically)")
+    parser.add_argument("--rate-point", "-r", metavar="SET:POINT",
+                        help="e.g. paper_table3:rp2, mpeg_ctc_video:rp01, gsplat_png, my.yaml:fast (default: "
+                        "paper_table3:rp2; with a target: the template shac_auto:template); list them with "
+                        "'gscodec-shac rate-points'")
     target = parser.add_argument_group("rate control (one target; the settings are chosen per scene)")
     target.add_argument("--target-size", metavar="SIZE",
                         help="the largest file, e.g. 2.5MB, 800kB, 1200000 (B, kB, MB, GB, KiB, MiB, GiB)")
-    target.add_argument("--target-bpg", type=float, metavar="BITS", help="the largest size in bits per Gaussian")
+    target.add_argument("--target-bpg", type=float, metavar="BITS",
+                        help="the largest size in bits per Gaussian, e.g. 100")
     target.add_argument("--target-psnr", type=float, metavar="DB",
-                        help="the lowest PSNR (dB) against the uncompressed model on --cameras (else orbit views)")
-    target.add_argument("--cameras", help="views the quality is judged from (any camera file or capture folder)")
+                        help="the lowest PSNR (dB) against the uncompressed model on --cameras (else orbit views), "
+                        "e.g. 40")
+    target.add_argument("--cameras", help="views the quality is judged from (any camera file or capture folder, "
+                        "e.g. cameras.json)")
     target.add_argument("--background", default="0,0,0",
                         help="background colour R,G,B in [0, 1] the views are rendered over (default 0,0,0; "
                         "NeRF-synthetic scenes use 1,1,1)")
-    target.add_argument("--up", default="0,0,1",
-                        help="world up axis of the orbit views without --cameras (default 0,0,1; splat-transform "
-                        "and most web viewers use 0,1,0 or 0,-1,0)")
+    add_up(target, "the orbit views without --cameras")
     parser.add_argument("--sh", choices=STAGES.names(),
                         help="SH stage (default: the rate point's): "
                         + "; ".join(f"{name}: {cls.summary}" for name, cls in STAGES.items()))
@@ -65,8 +71,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--sort", choices=("plas", "morton", "random", "none"), help="grid sorting (default: the rate point's)")
     parser.add_argument("--preset", help="speed preset of the lossy codec (x265: ultrafast ... slow ... placebo)")
     parser.add_argument("--seed", type=int, help="seed of the sorting and of the vq k-means (default: the rate point's)")
-    parser.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
-    parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_quiet(parser)
+    add_json(parser)
     add_force(parser)
     parser.set_defaults(func=run)
 

@@ -6,17 +6,21 @@ import argparse
 import json
 from typing import Any
 
+from gscodec_shac.commands._options import add_command, add_json
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "info",
+    parser = add_command(
+        subparsers, "info",
         help="describe a 3DGS PLY or a .gsc file (count, SH degree, where the bytes go)",
-        description="Describe a 3DGS PLY (Gaussian count, SH degree, per-attribute ranges, bytes per "
-        "Gaussian, SH share) or a .gsc file (header summary, bytes and bits per Gaussian per attribute).",
+        description="Describe a 3DGS model (Gaussian count, SH degree, per-attribute ranges, bytes per "
+        "Gaussian, SH share) or a .gsc file (header summary, bytes and bits per Gaussian per attribute and "
+        "chunk, QPs and codecs).",
+        examples=["gscodec-shac info scene.gsc", "gscodec-shac info scene.ply --json"],
     )
-    parser.add_argument("file", help="a .gsc file or a model: Inria .ply, .compressed.ply, .spz, .splat, .sog, "
-                        "SOG meta.json (or its folder), gsplat checkpoint .pt")
-    parser.add_argument("--json", action="store_true", help="print JSON instead of text")
+    parser.add_argument("file", metavar="FILE", help="a .gsc file or a model: Inria .ply, .compressed.ply, .spz, "
+                        ".splat, .sog, SOG meta.json (or its folder), gsplat checkpoint .pt")
+    add_json(parser, "the description")
     parser.set_defaults(func=run)
 
 

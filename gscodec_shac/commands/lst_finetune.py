@@ -20,31 +20,47 @@ import json
 import math
 from pathlib import Path
 
-from gscodec_shac.commands._options import add_force, comma_floats, resize_cameras
+from gscodec_shac.commands._options import (
+    add_alias,
+    add_command,
+    add_force,
+    add_quiet,
+    add_threads,
+    add_up,
+    all_cores,
+    check_threads,
+    comma_floats,
+    resize_cameras,
+)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "lst-finetune",
+    parser = add_command(
+        subparsers, "lst-finetune",
         help="fine-tune SHAC-LST (S, T, DC) of a 3DGS PLY with the 3DGS render loss, geometry fixed",
         description="Start from the post-hoc SHAC-LST fit of IN.ply and optimise the subset S, the "
         "transform T and the DC colours with 0.8 L1 + 0.2 D-SSIM + lambda_t L_T (paper eq. 37) on "
         "one random training view per step. Writes OUT.ply (full SH) and OUT.lst.npz (compact S + T).",
+        examples=["gscodec-shac lst-finetune scene.ply scene_lst.ply --cameras capture/ --images capture/images",
+                  "gscodec-shac lst-finetune scene.ply scene_lst.ply --orbit 64 --up 0,-1,0 --width 200"],
     )
     parser.add_argument("scene", metavar="IN.ply", help="an Inria 3DGS .ply with SH degree 2-4")
     parser.add_argument("out", metavar="OUT.ply", help="output PLY path (OUT.lst.npz, OUT.ckpt.pt, OUT.log.csv, OUT.finetune.json beside it)")
     source = parser.add_mutually_exclusive_group()
     source.add_argument("--cameras", help="cameras.json, transforms*.json, poses_bounds.npy, a COLMAP model or a capture folder")
     source.add_argument("--orbit", type=int, metavar="N", help="train on N orbit views around the scene (targets: original renders)")
-    parser.add_argument("--images", help="folder of ground-truth images for the cameras (default: the capture's images folder, if any)")
+    parser.add_argument("--images", metavar="DIR",
+                        help="folder of ground-truth images for the cameras (default: the capture's images folder, if any)")
     parser.add_argument("--targets", choices=("auto", "images", "original"), default="auto",
                         help="what the renders are compared with: ground-truth images, the original model's renders, "
                         "or auto = images when every camera has one (default)")
     parser.add_argument("--all-views", action="store_true", help="train on every camera (default: hold out every 8th, the 3DGS test split)")
     size = parser.add_mutually_exclusive_group()
     size.add_argument("--width", type=int, metavar="W", help="resize every camera to width W (aspect kept)")
-    size.add_argument("--scale", type=float, metavar="F", help="scale every camera's resolution by F")
-    parser.add_argument("--up", default="0,0,1", help="world up axis of --orbit views (default 0,0,1)")
+    scale = size.add_argument("--resolution-scale", dest="scale", type=float, metavar="F",
+                              help="scale every camera's resolution by F, e.g. 0.5")
+    add_alias(size, "--scale", scale)
+    add_up(parser, "the --orbit views")
     parser.add_argument("--steps", type=int, default=3000, help="optimisation steps (default 3000)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the view order (default 0)")
     parser.add_argument("--refit-subset", type=int, default=0, metavar="R",
@@ -54,12 +70,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "5e-3 recommended with --refit-subset)")
     parser.add_argument("--lambda-t", type=float, default=5e-3, help="weight of the eq. 36 scale term (default 5e-3)")
     parser.add_argument("--freeze-dc", action="store_true", help="keep the DC colours fixed (default: trained at 2.5e-3)")
-    parser.add_argument("--background", default="0,0,0", help="background colour R,G,B in [0, 1] (default 0,0,0)")
-    parser.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints (default 500)")
+    parser.add_argument("--background", default="0,0,0", metavar="R,G,B",
+                        help="background colour R,G,B in [0, 1] (default 0,0,0)")
+    parser.add_argument("--checkpoint-every", type=int, default=500, metavar="N",
+                        help="steps between checkpoints (default 500)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT.ckpt.pt when it exists")
-    parser.add_argument("--cache-gb", type=float, default=4.0, help="memory budget of the per-view weight cache in GiB (default 4)")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: faster on a busy 2-core machine)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("--cache-gb", type=float, default=4.0, metavar="GIB",
+                        help="memory budget of the per-view weight cache in GiB (default 4)")
+    add_threads(parser, "torch threads", default="all cores; on a busy machine 1 can be many times faster, docs/lst.md")
+    add_quiet(parser)
     add_force(parser)
     parser.set_defaults(func=run)
 
@@ -90,8 +109,7 @@ def run(args: argparse.Namespace) -> int:
         raise GscodecError(f"--refit-subset must be >= 0, got {args.refit_subset}")
     if not (math.isfinite(args.cache_gb) and args.cache_gb > 0):
         raise GscodecError(f"--cache-gb must be a positive number, got {args.cache_gb}")
-    if args.threads < 1:
-        raise GscodecError(f"--threads must be at least 1, got {args.threads}")
+    threads = check_threads(args.threads) or all_cores()
     background = comma_floats(args.background, "--background")
     if not all(0.0 <= v <= 1.0 for v in background):
         raise GscodecError(f"--background values must lie in [0, 1], got {args.background!r}")
@@ -141,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
     config = FinetuneConfig(
         steps=args.steps, seed=args.seed, lst=LSTConfig(degree=cloud.sh_degree, lambda_t=args.lambda_t),
         refit_subset=args.refit_subset, ridge=args.ridge, train_dc=not args.freeze_dc, background=tuple(background),
-        cache_bytes=int(args.cache_gb * (1 << 30)), threads=args.threads,
+        cache_bytes=int(args.cache_gb * (1 << 30)), threads=threads,
     )
     tuner = LstFinetuner(cloud, train, targets=targets, config=config)
     checkpoint = checkpoint_path_for(out)
@@ -159,7 +177,7 @@ def run(args: argparse.Namespace) -> int:
         "targets": targets,
         "resolution": [train[0].width, train[0].height],
         "config": tuner.fingerprint()["config"],
-        "threads": args.threads,
+        "threads": threads,
         "sh_floats_per_gaussian": 3 + stage.n_features,
         "side_bytes": stage.state().nbytes(),
         **result.summary(),

@@ -1,33 +1,37 @@
-"""``gscodec-shac rd SWEEP.yaml --out DIR``: run (or resume) a rate-distortion sweep."""
+"""``gscodec-shac rd SWEEP.yaml OUT_DIR``: run (or resume) a rate-distortion sweep."""
 
 from __future__ import annotations
 
 import argparse
 
+from gscodec_shac.commands._options import add_command, add_output, add_quiet, add_threads
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "rd",
+    parser = add_command(
+        subparsers, "rd",
         help="run a rate-distortion sweep (scenes x methods x rate points); resumable",
-        description=(
-            "Encode, decode, render and score every scene x method x rate point of a sweep YAML. "
-            "Rows go to DIR/results.csv and DIR/results.json as runs finish; finished runs are "
-            "skipped when the command is repeated. Ends with the report of `gscodec-shac rd-report DIR`."
-        ),
+        description="Encode, decode, render and score every scene x method x rate point of a sweep YAML. "
+        "Rows go to OUT_DIR/results.csv and OUT_DIR/results.json as runs finish; finished runs are "
+        "skipped when the command is repeated. Ends with the report of `gscodec-shac rd-report OUT_DIR`.",
+        examples=["gscodec-shac rd sweeps/bonsai.yaml runs/bonsai --workers 2",
+                  "gscodec-shac rd sweeps/bonsai.yaml runs/bonsai --dry-run"],
     )
-    parser.add_argument("sweep", help="sweep YAML (see gscodec_shac/rd/spec.py or docs/rd.md)")
-    parser.add_argument("--out", required=True, help="output folder (created; reused to resume)")
-    parser.add_argument("--workers", type=int, default=1, help="runs executing at once (default 1)")
+    parser.add_argument("sweep", metavar="SWEEP.yaml", help="sweep YAML (see gscodec_shac/rd/spec.py or docs/rd.md)")
+    add_output(parser, "OUT_DIR", "output folder (created; reused to resume)")
+    parser.add_argument("--workers", type=int, default=1, metavar="N", help="runs executing at once (default 1)")
     parser.add_argument("--executor", choices=("local", "serial", "ray"), default="local",
                         help="local processes (default), this process, or Ray tasks")
-    parser.add_argument("--address", default=None,
+    parser.add_argument("--address", default=None, metavar="HOST:PORT",
                         help="Ray cluster address ('auto' or HOST:PORT); default: start a local Ray instance")
-    parser.add_argument("--num-cpus", type=float, default=None, help="CPUs Ray reserves per run (default: --threads)")
-    parser.add_argument("--threads", type=int, default=None, help="threads per run (default: CPUs / workers)")
-    parser.add_argument("--force", action="store_true", help="run finished rows again")
-    parser.add_argument("--no-report", action="store_true", help="do not write DIR/report at the end")
+    parser.add_argument("--num-cpus", type=float, default=None, metavar="N",
+                        help="CPUs Ray reserves per run (default: --threads)")
+    add_threads(parser, "threads per run", default="all cores, divided among the --workers runs")
+    parser.add_argument("--force", action="store_true", help="run finished rows again; use a folder that holds "
+                        "other files")
+    parser.add_argument("--no-report", action="store_true", help="do not write OUT_DIR/report at the end")
     parser.add_argument("--dry-run", action="store_true", help="validate the sweep and list its runs, run nothing")
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    add_quiet(parser)
     parser.set_defaults(func=run)
 
 

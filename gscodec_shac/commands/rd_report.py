@@ -1,26 +1,28 @@
-"""``gscodec-shac rd-report DIR``: tables, BD-rates and RD plots from a sweep's results."""
+"""``gscodec-shac rd-report RESULTS [OUT_DIR]``: tables, BD-rates and RD plots from a sweep's results."""
 
 from __future__ import annotations
 
 import argparse
 
-from gscodec_shac.commands._options import add_force
+from gscodec_shac.commands._options import add_command, add_force, add_output
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "rd-report",
+    parser = add_command(
+        subparsers, "rd-report",
         help="tables, BD-rates and RD plots from the results of 'gscodec-shac rd'",
-        description=(
-            "Read DIR/results.json (or the run log) and write report.md (RD and BD tables), "
-            "bd.json, bd.csv and one rd_<scene>.png per scene into DIR/report (or --out)."
-        ),
+        description="Read RESULTS/results.json (or the run log) and write report.md (RD and BD tables), "
+        "bd.json, bd.csv and one rd_<scene>.png per scene into OUT_DIR (default: RESULTS/report).",
+        examples=["gscodec-shac rd-report runs/bonsai",
+                  "gscodec-shac rd-report runs/bonsai bonsai_report/ --x-axis bpg"],
     )
-    parser.add_argument("results", help="a sweep output folder (or its results.json)")
-    parser.add_argument("--out", default=None, help="report folder (default: DIR/report)")
-    parser.add_argument("--anchor", default=None, help="method the BD-rates are measured against (default: the sweep's)")
-    parser.add_argument("--x-axis", choices=("mb", "bpg"), default="mb", help="plot size in MB or bits per Gaussian")
-    parser.add_argument("--title", default=None, help="report title")
+    parser.add_argument("results", metavar="RESULTS", help="a sweep output folder (or its results.json)")
+    add_output(parser, "OUT_DIR", "report folder (default: RESULTS/report)", required=False)
+    parser.add_argument("--anchor", default=None, metavar="METHOD",
+                        help="method the BD-rates are measured against (default: the sweep's)")
+    parser.add_argument("--x-axis", choices=("mb", "bpg"), default="mb",
+                        help="plot size in MB or bits per Gaussian (default mb)")
+    parser.add_argument("--title", default=None, help="report title (default: \"RD results: <sweep name>\")")
     parser.add_argument("--prefix", default="rd_", help="figure file prefix (default rd_)")
     add_force(parser)
     parser.set_defaults(func=run)

@@ -1,9 +1,9 @@
-"""``gscodec-shac render SCENE.ply --out DIR``: render views of a 3DGS PLY to 8-bit PNGs on the CPU.
+"""``gscodec-shac render SCENE.ply OUT_DIR``: render views of a 3DGS PLY to 8-bit PNGs on the CPU.
 
 Cameras come from ``--cameras`` (any file or capture folder :func:`load_cameras` reads) or,
 without it, from an orbit around the scene (centre = median of the means, radius 2.5x the
 median distance of the means from it, ``--up`` as the world up axis). When the cameras have
-ground-truth images (``--images-dir`` or the capture's ``images`` folder), PSNR and SSIM
+ground-truth images (``--images`` or the capture's ``images`` folder), PSNR and SSIM
 against them (resized to the render size with INTER_AREA, RGBA composited over the
 background) are printed and written to ``metrics.json``; LPIPS too when weights are supplied.
 """
@@ -14,34 +14,54 @@ import argparse
 import json
 from pathlib import Path
 
-from gscodec_shac.commands._options import add_force, comma_floats, resize_cameras
+from gscodec_shac.commands._options import (
+    add_alias,
+    add_command,
+    add_force,
+    add_output,
+    add_quiet,
+    add_up,
+    comma_floats,
+    resize_cameras,
+)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "render",
+    parser = add_command(
+        subparsers, "render",
         help="render views of a 3DGS PLY to PNGs on the CPU (reference 3DGS rasteriser math)",
-        description="Render a 3DGS PLY from its cameras (or an orbit) with the CPU tile rasteriser "
-        "and write 8-bit PNGs (clipped to [0, 1]).",
+        description="Render a 3DGS model from its cameras (or an orbit) with the CPU tile rasteriser "
+        "and write 8-bit PNGs (clipped to [0, 1]) into OUT_DIR; with ground-truth images, PSNR/SSIM "
+        "(and LPIPS with weights) go to OUT_DIR/metrics.json.",
+        examples=["gscodec-shac render scene.ply renders/ --cameras cameras.json --images images/ --split test",
+                  "gscodec-shac render scene.ply orbit/ --orbit-views 24 --up 0,-1,0"],
     )
-    parser.add_argument("scene", help="a model: Inria .ply, .compressed.ply, .spz, .splat, .sog, SOG meta.json, gsplat .pt")
+    parser.add_argument("scene", metavar="SCENE", help="a model: Inria .ply, .compressed.ply, .spz, .splat, .sog, "
+                        "SOG meta.json, gsplat .pt")
+    add_output(parser, "OUT_DIR", "output directory for the PNGs and metrics.json (created)")
     parser.add_argument("--cameras", help="cameras.json, transforms*.json, poses_bounds.npy, a COLMAP model "
                         "or a capture folder; default: an orbit around the scene")
-    parser.add_argument("--images-dir", help="ground-truth images for the cameras (enables PSNR/SSIM)")
+    images = parser.add_argument("--images", dest="images_dir", metavar="DIR",
+                                 help="ground-truth images for the cameras (enables PSNR/SSIM; default: the "
+                                 "capture's images folder, if any)")
+    add_alias(parser, "--images-dir", images)
     select = parser.add_mutually_exclusive_group()
     select.add_argument("--every", type=int, metavar="N", help="render every N-th camera (name order)")
     select.add_argument("--split", choices=("test", "train", "all"), default="all",
                         help="the 3DGS evaluation split: test = every 8th camera in name order (default: all)")
     size = parser.add_mutually_exclusive_group()
-    size.add_argument("--scale", type=float, metavar="F", help="scale every camera's resolution by F")
+    scale = size.add_argument("--resolution-scale", dest="scale", type=float, metavar="F",
+                              help="scale every camera's resolution by F, e.g. 0.5")
+    add_alias(size, "--scale", scale)
     size.add_argument("--width", type=int, metavar="W", help="resize every camera to width W (aspect kept)")
-    parser.add_argument("--background", default="0,0,0", help="background colour R,G,B in [0, 1] (default 0,0,0)")
-    parser.add_argument("--orbit-views", type=int, default=24, help="number of orbit views without --cameras")
-    parser.add_argument("--up", default="0,0,1", help="world up axis of the orbit without --cameras (default 0,0,1)")
-    parser.add_argument("--lpips-weights", help="LPIPS-VGG weights file (else $GSCODEC_LPIPS_WEIGHTS; "
+    parser.add_argument("--background", default="0,0,0", metavar="R,G,B",
+                        help="background colour R,G,B in [0, 1] (default 0,0,0)")
+    parser.add_argument("--orbit-views", type=int, default=24, metavar="N",
+                        help="number of orbit views without --cameras (default 24)")
+    add_up(parser, "the orbit without --cameras")
+    parser.add_argument("--lpips-weights", metavar="FILE", help="LPIPS-VGG weights file (else $GSCODEC_LPIPS_WEIGHTS; "
                         "without either LPIPS is reported as unavailable)")
-    parser.add_argument("--out", required=True, help="output directory (created)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet(parser)
     add_force(parser)
     parser.set_defaults(func=run)
 
@@ -93,13 +113,13 @@ def run(args: argparse.Namespace) -> int:
         cameras = resize_cameras(_select(load_cameras(args.cameras, args.images_dir), args), args.scale, args.width)
     else:
         if args.images_dir:
-            raise GscodecError("--images-dir needs --cameras (orbit views have no ground truth)")
+            raise GscodecError("--images needs --cameras (orbit views have no ground truth)")
         cameras = _select(_orbit(cloud, args.orbit_views, comma_floats(args.up, "--up"), args.width, args.scale), args)
     if not cameras:
         raise GscodecError("no cameras left to render after the selection")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
-        raise OutputError(f"{out}: --out must be a directory, this is a file")
+        raise OutputError(f"{out}: OUT_DIR must be a directory, this is a file")
     with_truth = any(c.image_path is not None for c in cameras)
     protect_inputs(*(c.image_path for c in cameras))
     names = png_names([camera.name for camera in cameras])

@@ -15,19 +15,22 @@ import math
 import os
 from pathlib import Path
 
-from gscodec_shac.commands._options import add_force
+from gscodec_shac.commands._options import add_command, add_force, add_threads
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "train",
+    parser = add_command(
+        subparsers, "train",
         help="train a 3DGS model on the CPU from a capture (full SH or SHAC-LST)",
         description="Train 3D Gaussian Splatting on the CPU with the reference 3DGS recipe, full SH or "
-        "SHAC-LST (S T, paper Sec. V-B). Every 8th view (name order) is held out for testing.",
+        "SHAC-LST (S T, paper Sec. V-B). Every 8th view (name order) is held out for testing. OUT_DIR gets "
+        "point_cloud.ply, cameras.json, metrics.json, run.json and checkpoint.npz (--resume continues it).",
+        examples=["gscodec-shac train capture/ out/ --sh lst --iterations 3000 --max-gaussians 50000",
+                  "gscodec-shac train mipnerf360_bonsai/ bonsai/ --images images --resolution-scale 0.25"],
     )
-    parser.add_argument("capture", help="capture folder: COLMAP (sparse/0 + images), Inria cameras.json + images, "
-                        "or NeRF-synthetic (transforms_train.json)")
-    parser.add_argument("out_dir", help="output folder (created)")
+    parser.add_argument("capture", metavar="CAPTURE_DIR", help="capture folder: COLMAP (sparse/0 + images), Inria "
+                        "cameras.json + images, or NeRF-synthetic (transforms_train.json)")
+    parser.add_argument("out_dir", metavar="OUT_DIR", help="output folder (created)")
     parser.add_argument("--sh", choices=("full", "lst"), default="full", help="SH parameterisation (default full)")
     parser.add_argument("--sh-degree", type=int, default=3, help="SH degree 0-3 (default 3; 2 = Train-L2-D24)")
     parser.add_argument("--iterations", type=int, default=30_000, help="training iterations (default 30000); "
@@ -38,14 +41,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--max-gaussians", type=int, help="number of Gaussians (mcmc: exact budget; default "
                         "strategy: cap)")
     size = parser.add_mutually_exclusive_group()
-    size.add_argument("--resolution-scale", type=float, metavar="F", help="scale the images by F (INTER_AREA)")
+    size.add_argument("--resolution-scale", type=float, metavar="F", help="scale the images by F (INTER_AREA), e.g. 0.25")
     size.add_argument("--width", type=int, metavar="W", help="resize the images to width W (aspect kept)")
-    parser.add_argument("--images", metavar="SUBDIR", help="image folder inside the capture (e.g. images_8)")
-    parser.add_argument("--init", choices=("sfm", "random"), default="sfm", help="initial points (default sfm)")
+    parser.add_argument("--images", metavar="DIR", help="image folder: a folder name inside the capture (e.g. "
+                        "images_8) or an absolute path (default: the capture's images folder)")
+    parser.add_argument("--init", choices=("sfm", "random"), default="sfm",
+                        help="initial points: the capture's SfM points or random ones (default sfm)")
     parser.add_argument("--random-points", type=int, default=0, metavar="N",
                         help="add N random background points to the initial points (e.g. bonsai)")
-    parser.add_argument("--background", help="background R,G,B in [0, 1] (default: white for NeRF-synthetic, "
-                        "else black)")
+    parser.add_argument("--background", metavar="R,G,B", help="background R,G,B in [0, 1] (default: white for "
+                        "NeRF-synthetic, else black)")
     parser.add_argument("--opacity-lr", type=float, default=0.05, help="opacity learning rate (default 0.05 as "
                         "the original 3DGS; newer releases use 0.025)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
@@ -55,9 +60,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "checkpoint's settings are used)")
     parser.add_argument("--time-budget", type=float, metavar="SECONDS", help="stop training after this many "
                         "seconds of this run (checkpoint written; --resume continues)")
-    parser.add_argument("--threads", type=int, help="numba threads (default: all cores)")
+    add_threads(parser, "numba threads of the rasteriser")
     parser.add_argument("--no-eval", action="store_true", help="skip the test-view evaluation")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar (a JSON log line every 100 steps)")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars: a JSON log line every 100 "
+                        "steps instead (also when stderr is not a terminal)")
     add_force(parser)
     parser.set_defaults(func=run)
 

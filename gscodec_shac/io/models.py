@@ -91,14 +91,19 @@ def read_model(path: str | os.PathLike) -> tuple[GaussianCloud, list[str]]:
     return _collecting(lambda: _readers()[detect_format(path)](path))
 
 
-def write_model(path: str | os.PathLike, cloud: GaussianCloud, **options: Any) -> list[str]:
+def write_model(path: str | os.PathLike, cloud: GaussianCloud, *, progress: bool = False, **options: Any) -> list[str]:
     """Write ``cloud`` in the format of ``path``'s extension, atomically; returns the notes.
 
-    ``options`` go to the format's writer (e.g. ``version=2`` for SPZ).
+    ``options`` go to the format's writer (e.g. ``version=2`` for SPZ); ``progress`` to a writer
+    with a long step that shows a progress bar (SOG's SH palette).
     """
+    import inspect
+
     path = Path(path)
     check_model_extension(path)
     writer = _writers()[WRITE_EXTENSIONS[path.suffix.lower()]]
+    if progress and "progress" in inspect.signature(writer).parameters:
+        options["progress"] = True
     _, notes = _collecting(lambda: writer(path, cloud, **options))
     return notes
 

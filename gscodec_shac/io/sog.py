@@ -259,6 +259,7 @@ def write_sog(
     iterations: int = 10,
     palette_size: int | None = None,
     seed: int = 0,
+    progress: bool = False,
 ) -> None:
     """Write ``cloud`` as SOG version 2: a zipped ``.sog``, or ``meta.json`` + images beside it.
 
@@ -266,7 +267,8 @@ def write_sog(
     splat-transform does; the file then holds them in that order) or ``"keep"``.
     ``iterations``: k-means iterations of the SH palette (``palette_size`` entries;
     default as splat-transform: 1k-64k by scene size). Images are lossless WebP (Pillow,
-    exact RGB under transparent texels).
+    exact RGB under transparent texels). ``progress``: a progress bar over the palette's k-means
+    (about a minute for 1M Gaussians).
     """
     path = Path(path)
     bundle = path.suffix.lower() == ".sog"
@@ -322,7 +324,7 @@ def write_sog(
         "sh0": {"codebook": color_book.tolist(), "files": ["sh0.webp"]},
     }
     if cloud.sh_degree:
-        meta["shN"] = _write_palette(cloud, files, texels, iterations, palette_size, seed)
+        meta["shN"] = _write_palette(cloud, files, texels, iterations, palette_size, seed, progress)
     meta_bytes = json.dumps(meta).encode("utf-8")
     if bundle:
         buffer = io.BytesIO()
@@ -338,7 +340,7 @@ def write_sog(
 
 
 def _write_palette(cloud: GaussianCloud, files: dict[str, bytes], texels, iterations: int,
-                   palette_size: int | None, seed: int) -> dict[str, Any]:
+                   palette_size: int | None, seed: int, progress: bool = False) -> dict[str, Any]:
     """k-means palette of the SH AC vectors (the project's ``vq`` stage), its images and meta entry."""
     from gscodec_shac.shac.vq import VectorQuantizer
 
@@ -346,7 +348,9 @@ def _write_palette(cloud: GaussianCloud, files: dict[str, bytes], texels, iterat
     if palette_size is None:
         palette_size = int(min(64, 2.0 ** np.floor(np.log2(n / 1024))) * 1024)
     palette_size = max(1, min(int(palette_size), 65536, n))
-    vq = VectorQuantizer(n_clusters=palette_size, centroid_bits=16, n_iter=iterations, seed=seed).fit(cloud.ac_matrix())
+    vq = VectorQuantizer(n_clusters=palette_size, centroid_bits=16, n_iter=iterations, seed=seed)
+    vq.progress = progress
+    vq.fit(cloud.ac_matrix())
     centres = vq.codebook_.reshape(-1, k, 3)
     labels = vq.labels_
     book, codes = _codebook_1d(centres.reshape(-1, 3), iterations)

@@ -169,6 +169,9 @@ class ShStage(ABC):
     params: ClassVar[tuple[StageParam, ...]] = ()
     #: True when the stage consumes and returns ``[DC | A]`` instead of ``A``.
     uses_dc: bool = False
+    #: Show a progress bar while fitting (a stage with a long fit honours it, e.g. vq's k-means);
+    #: the :class:`~gscodec_shac.codec.encoder.Encoder` sets it from its own ``progress``.
+    progress: bool = False
 
     @abstractmethod
     def fit(self, ac: np.ndarray) -> "ShStage":

@@ -32,6 +32,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac.shac.base import ShStage, StageParam, StageState, check_ac_matrix, register_stage
@@ -131,7 +132,13 @@ class VectorQuantizer(ShStage):
             raise ValidationError("vq cannot fit an empty matrix (N = 0)")
         rng = np.random.default_rng(self.seed)
         leaves: list[_Node] = []
-        self._tree = self._build(x, np.arange(x.shape[0]), min(self.n_clusters, x.shape[0]), rng, leaves)
+        with tqdm(total=x.shape[0], desc="SH k-means", unit="G", unit_scale=True, disable=not self.progress,
+                  leave=False) as bar:
+            self._bar = bar
+            try:
+                self._tree = self._build(x, np.arange(x.shape[0]), min(self.n_clusters, x.shape[0]), rng, leaves)
+            finally:
+                del self._bar
         centres = np.empty((sum(leaf.size for leaf in leaves), x.shape[1]), dtype=np.float32)
         offset = 0
         for leaf in leaves:
@@ -180,6 +187,7 @@ class VectorQuantizer(ShStage):
         centres = x[rows] if identity else _kmeans(x[rows], k, rng, self.n_iter, self.init)
         leaf = _Node(size=centres.shape[0], centres=centres, members=rows, identity=identity)
         leaves.append(leaf)
+        self._bar.update(rows.size)
         return leaf
 
     def _set_codebook(self, codes: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
