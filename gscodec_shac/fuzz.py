@@ -102,22 +102,22 @@ def make_case(family: str, data: bytes, seed_index: int, index: int) -> bytes:
     rng = np.random.default_rng([FAMILIES.index(family), seed_index, index])
     if family == "bytes":
         return _edit_bytes(bytearray(data), rng, header_bias=True)
-    parts = _split(data)
+    raw_header, payloads, version = _split(data)
     if family == "resigned":
-        header, payloads = parts
         target = int(rng.integers(-1, len(payloads)))
         if target < 0 or not payloads:
-            return _pack(_edit_bytes(bytearray(header), rng, header_bias=False), payloads, resign_table=False)
+            return _pack(_edit_bytes(bytearray(raw_header), rng, header_bias=False), payloads, resign_table=False,
+                         version=version)
         payloads = list(payloads)
         payloads[target] = _edit_bytes(bytearray(payloads[target]), rng, header_bias=False)
-        return _pack(header, payloads)
-    header = json.loads(parts[0])
+        return _pack(raw_header, payloads, version=version)
+    header = json.loads(raw_header)
     if family == "header":
-        return _pack(_dump(_edit_value(header, rng)), parts[1], resign_table=False)
+        return _pack(_dump(_edit_value(header, rng)), payloads, resign_table=False, version=version)
     if family == "state":
-        return _edit_state(header, list(parts[1]), rng)
+        return _edit_state(header, list(payloads), rng, version)
     if family == "resize":
-        return _resize(header, parts[1], rng)
+        return _resize(header, payloads, rng, version)
     raise ValueError(f"unknown fuzz family {family!r}; known: {', '.join(FAMILIES)}")
 
 
@@ -147,20 +147,21 @@ def _edit_bytes(buf: bytearray, rng: np.random.Generator, header_bias: bool) -> 
     return bytes(buf)
 
 
-def _split(data: bytes) -> tuple[bytes, list[bytes]]:
-    """(header JSON bytes, chunk payloads) of a valid seed stream."""
-    _, _, _, header_len, _ = _PREAMBLE.unpack_from(data)
-    header = data[PREAMBLE_SIZE : PREAMBLE_SIZE + header_len]
+def _split(data: bytes) -> tuple[bytes, list[bytes], tuple[int, int]]:
+    """(header JSON bytes, chunk payloads, version) of a valid seed stream (a 2.0 header inflated)."""
+    _, major, minor, header_len, _ = _PREAMBLE.unpack_from(data)
+    stored = data[PREAMBLE_SIZE : PREAMBLE_SIZE + header_len]
+    header = zlib.decompress(stored) if major >= 2 else stored
     offset, payloads = PREAMBLE_SIZE + header_len, []
     for entry in json.loads(header)["chunks"]:
         payloads.append(data[offset : offset + entry["size"]])
         offset += entry["size"]
-    return header, payloads
+    return header, payloads, (major, minor)
 
 
 def _pack(header: bytes, payloads: list[bytes], resign_table: bool = True, version: tuple[int, int] = (1, 0)) -> bytes:
-    """A container of ``header`` and ``payloads``, CRCs computed; ``resign_table`` also rewrites
-    each chunk's size and CRC in the table (when the header parses)."""
+    """A container of ``header`` (JSON; deflated for version 2) and ``payloads``, CRCs computed;
+    ``resign_table`` also rewrites each chunk's size and CRC in the table (when the header parses)."""
     if resign_table:
         try:
             parsed = json.loads(header)
@@ -169,8 +170,9 @@ def _pack(header: bytes, payloads: list[bytes], resign_table: bool = True, versi
             header = _dump(parsed)
         except (ValueError, KeyError, TypeError):
             pass
-    preamble = _PREAMBLE.pack(MAGIC, *version, len(header), zlib.crc32(header))
-    return b"".join([preamble, header, *payloads])
+    stored = zlib.compress(header, 9) if version[0] >= 2 else header
+    preamble = _PREAMBLE.pack(MAGIC, *version, len(stored), zlib.crc32(stored))
+    return b"".join([preamble, stored, *payloads])
 
 
 def _dump(value: Any) -> bytes:
@@ -236,11 +238,11 @@ def _tweak_number(value: float, rng: np.random.Generator) -> float:
     return value * 10**9
 
 
-def _edit_state(header: dict, payloads: list[bytes], rng: np.random.Generator) -> bytes:
+def _edit_state(header: dict, payloads: list[bytes], rng: np.random.Generator, version: tuple[int, int]) -> bytes:
     """Edit the ``sh_state`` chunk (its JSON or array bytes), re-deflate, fix raw_size and CRCs."""
     names = [entry["name"] for entry in header["chunks"]]
     if "sh_state" not in names:
-        return _pack(_dump(_edit_value(header, rng)), payloads, resign_table=False)
+        return _pack(_dump(_edit_value(header, rng)), payloads, resign_table=False, version=version)
     index = names.index("sh_state")
     raw = zlib.decompress(payloads[index])
     (length,) = struct.unpack_from("<I", raw, 4)
@@ -253,10 +255,10 @@ def _edit_state(header: dict, payloads: list[bytes], rng: np.random.Generator) -
     raw = raw[:4] + struct.pack("<I", len(text)) + text + arrays
     payloads[index] = zlib.compress(raw, 9)
     header["chunks"][index]["raw_size"] = len(raw)
-    return _pack(_dump(header), payloads)
+    return _pack(_dump(header), payloads, version=version)
 
 
-def _resize(header: dict, payloads: list[bytes], rng: np.random.Generator) -> bytes:
+def _resize(header: dict, payloads: list[bytes], rng: np.random.Generator, version: tuple[int, int]) -> bytes:
     """Scale the declared Gaussians, grid and chunk shapes up together, consistently enough to pass
     every header check (a matching grid mask is made); the plane payloads stay small."""
     factor = int(rng.choice([2, 16, 1000, 10**5, 10**7]))
@@ -276,7 +278,7 @@ def _resize(header: dict, payloads: list[bytes], rng: np.random.Generator) -> by
                 packed = b"\xff" * (n // 8) + (bytes([(0xFF00 >> (n % 8)) & 0xFF]) if n % 8 else b"")
                 payloads[index] = zlib.compress(packed + bytes(size - len(packed)), 9)
             entry["raw_size"] = size
-    return _pack(_dump(header), list(payloads))
+    return _pack(_dump(header), list(payloads), version=version)
 
 
 # ------------------------------------------------------------------ targets
