@@ -79,6 +79,9 @@ def tables(rows: list[dict]) -> str:
                 cells.append(f"{result.value:+.1f}%" if result.ok else f"n/a ({result.reason})")
             lines.append(f"| {method} | {len(pts)} | {min(bpg):.0f}-{max(bpg):.0f} | " + " | ".join(cells) + " |")
         lines.append("")
+        times = {m: np.median([_num(r.get("encode_s")) for _, r in pts]) for m, pts in methods.items()}
+        lines += ["Encode seconds (median over the curve's points; on a shared 2-core machine): "
+                  + ", ".join(f"{m} {t:.1f}" for m, t in times.items()), ""]
         for anchor in ANCHORS:
             if anchor not in methods:
                 continue
