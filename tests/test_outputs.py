@@ -211,9 +211,11 @@ def test_an_interrupted_encode_leaves_the_old_file_and_no_temporary(tmp_path, si
             assert Decoder().decode(out.read_bytes()).num_gaussians > 0
             out.write_bytes(b"old")
             continue
-        assert process.returncode == status and "Traceback" not in stderr, stderr
+        # -signum: the signal came before Python had installed our handlers (a loaded machine
+        # can take longer than the delay to start); the file guarantees hold all the same.
+        assert process.returncode in (status, -signum) and "Traceback" not in stderr, stderr
         assert out.read_bytes() == b"old" and hidden(tmp_path) == []
-        if signum != signal.SIGKILL:
+        if signum != signal.SIGKILL and process.returncode == status:
             assert stderr.strip() == ("interrupted" if signum == signal.SIGINT else "terminated")
 
 
@@ -353,12 +355,12 @@ def test_the_cli_encode_is_byte_identical_across_thread_counts(scene, tmp_path):
     assert len(_cli_digests(ply, tmp_path, envs)) == 1
 
 
-@pytest.mark.xfail(strict=True, reason="known: OpenBLAS's sgemm rounds SHAC-PCA features differently with 1 and 2 "
-                   "BLAS threads at 400 Gaussians (the quantiser ranges in the header change by one ulp); the RD "
-                   "harness pins BLAS to one thread, the CLI does not (docs/reliability.md)")
-def test_the_cli_encode_is_byte_identical_across_blas_thread_counts(scene, tmp_path):
+def test_the_cli_encode_is_byte_identical_across_blas_kernels_and_threads(scene, tmp_path):
+    """SHAC-PCA's projection is accumulated in float64, so neither the BLAS thread count nor
+    the CPU kernel OpenBLAS picks (forced here with OPENBLAS_CORETYPE) changes a byte."""
     ply, _ = copy_inputs(scene, tmp_path)
-    envs = [{"OPENBLAS_NUM_THREADS": t} for t in ("1", "2")]
+    envs = [{"OPENBLAS_NUM_THREADS": "1"}, {"OPENBLAS_NUM_THREADS": "2"},
+            {"OPENBLAS_NUM_THREADS": "1", "OPENBLAS_CORETYPE": "Prescott"}]
     assert len(_cli_digests(ply, tmp_path, envs)) == 1
 
 

@@ -200,16 +200,20 @@ class ShacPCA(ShStage):
 
     # ------------------------------------------------------------ transform
     def transform(self, ac: np.ndarray) -> np.ndarray:
-        """Eq. 28: F = A' P, shape (N, M); float32 input gives float32 output."""
+        """Eq. 28: F = A' P, shape (N, M); float32 input gives float32 output.
+
+        The product is accumulated in float64 and rounded once to the output type, so
+        the features (and the stream) are the same whatever order the BLAS of this CPU
+        sums in: a float32 product differed by an ulp between CPUs and BLAS thread counts.
+        """
         self._check_fitted()
         ac = check_ac_matrix(ac, self._n_in)
         dtype = np.result_type(ac.dtype, np.float32)
-        weights = (self.components_ / self.scale_[:, None]).astype(dtype)
+        weights = self.components_ / self.scale_[:, None]  # float64
         out = np.empty((ac.shape[0], self.n_components_), dtype=dtype)
-        mean = self.mean_.astype(dtype)
         for start in range(0, ac.shape[0], self.chunk_size):
             stop = start + self.chunk_size
-            np.matmul(ac[start:stop] - mean, weights, out=out[start:stop])
+            out[start:stop] = (ac[start:stop] - self.mean_) @ weights
         return out
 
     def inverse_transform(self, features: np.ndarray) -> np.ndarray:
