@@ -252,7 +252,7 @@ class ShStage(ABC):
 
 
 # ------------------------------------------------------------------------ registry
-STAGES: Registry[ShStage] = Registry("SH stage", "gscodec_shac.shac", ("identity", "truncation", "pca", "lst", "vq"))
+STAGES: Registry[ShStage] = Registry("SH stage", "gscodec_shac.shac", ("identity", "truncation", "pca", "lst", "vq", "vq_pca"))
 register_stage = STAGES.register
 
 
