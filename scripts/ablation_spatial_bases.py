@@ -1,0 +1,227 @@
+"""Spatially varying SHAC-PCA bases (paper Sec. IX, future work): one basis per spatial cluster.
+
+    python scripts/ablation_spatial_bases.py SCENE.ply OUT_DIR [--clusters 1,4,8,16,32,64]
+        [--components 3,6,...] [--er 0.9,0.95,...] [--bits 10] [--cameras cameras.json --test-every 8]
+
+The Gaussians are split by k-means on their positions (k clusters, seeded); each cluster
+gets its own SHAC-PCA (eq. 23-29: standardise, principal components, project) of its AC
+matrix, k = 1 being the paper's global basis. Two ways to choose the ranks:
+
+* ``fixed-M``: the same M in every cluster (swept over ``--components``);
+* ``ER``: every cluster keeps the fewest components reaching an energy retention
+  (eq. 26, swept over ``--er``), so a simple region may keep fewer than a busy one.
+
+The features are quantised to ``--bits`` per value with a min/max per cluster and
+component (the codec's scalar quantiser). The rate counted, in bytes:
+
+* features: sum over clusters of n_c x M_c x bits / 8;
+* side information per cluster: P (K' x M_c), mu and sigma (K' each) as float32 and the
+  min/max of each feature (2 x M_c float32);
+* cluster labels: N x H(labels) / 8 (their zeroth-order entropy, what an ideal entropy
+  coder spends), or ``k`` counts (4 bytes each) if the grid order groups the clusters
+  (``labels by sort order``; a lower bound, since that order would disturb the grid sorting).
+
+The distortion is the mean squared error of the reconstructed AC coefficients (all N x K'
+values) against the input, and with ``--cameras`` also the PSNR of renders against the
+uncompressed model's renders of the test views (every ``--test-every``-th camera) for the
+configurations listed in ``--render`` (``k:M`` pairs of fixed-M runs).
+
+Equal-rate comparison: for each k, the bytes needed to reach each MSE of the global curve
+(log-log interpolation along the curve), summarised as the mean relative byte change over
+the MSE range both curves cover (a BD-rate in the MSE domain; negative = spatial bases
+need fewer bytes). Writes ``OUT_DIR/spatial_bases.json`` and ``OUT_DIR/spatial_bases.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from gscodec_shac.shac.pca import ShacPCA
+from gscodec_shac.shac.vq import _kmeans, _nearest
+
+FLOAT32 = 4
+
+
+def cluster_positions(positions: np.ndarray, k: int, seed: int = 0, n_iter: int = 20) -> np.ndarray:
+    """k-means labels of the positions (normalised per axis), seeded; k = 1 -> all zero."""
+    if k == 1:
+        return np.zeros(positions.shape[0], dtype=np.int64)
+    x = positions.astype(np.float32)
+    x = (x - x.mean(axis=0)) / np.maximum(x.std(axis=0), 1e-12)
+    centres = _kmeans(x, k, np.random.default_rng(seed), n_iter, "kmeans++")
+    return _nearest(x, centres)
+
+
+def label_entropy_bytes(labels: np.ndarray) -> float:
+    """N x H(labels) / 8: the zeroth-order entropy of the labels, in bytes."""
+    counts = np.bincount(labels)
+    p = counts[counts > 0] / labels.size
+    return float(-(p * np.log2(p)).sum() * labels.size / 8)
+
+
+def quantise(values: np.ndarray, bits: int) -> np.ndarray:
+    """Min/max uniform quantisation per column to ``bits``, returned dequantised."""
+    lo, hi = values.min(axis=0), values.max(axis=0)
+    span = np.where(hi > lo, hi - lo, 1.0)
+    levels = (1 << bits) - 1
+    return lo + np.rint((values - lo) / span * levels) / levels * span
+
+
+class ClusterBases:
+    """A full-rank SHAC-PCA per cluster, truncated on demand."""
+
+    def __init__(self, ac: np.ndarray, labels: np.ndarray) -> None:
+        self.ac, self.labels = ac, labels
+        self.k = int(labels.max()) + 1
+        self.rows = [np.flatnonzero(labels == c) for c in range(self.k)]
+        self.pcas = [ShacPCA(n_components=ac.shape[1]).fit(ac[r].astype(np.float64)) for r in self.rows]
+        self.features = [p.transform(ac[r].astype(np.float64)) for p, r in zip(self.pcas, self.rows)]
+
+    def ranks_for_energy(self, er: float) -> list[int]:
+        return [int(np.searchsorted(p.energy_, er - 1e-12) + 1) for p in self.pcas]
+
+    def reconstruct(self, ranks: list[int], bits: int) -> np.ndarray:
+        out = np.empty_like(self.ac, dtype=np.float64)
+        for p, r, f, m in zip(self.pcas, self.rows, self.features, ranks):
+            q = quantise(f[:, :m], bits)
+            back = (p.components_[:, :m] * p.scale_[:, None])  # eq. 29
+            out[r] = q @ back.T + p.mean_
+        return out
+
+    def rate(self, ranks: list[int], bits: int) -> dict[str, float]:
+        kp = self.ac.shape[1]
+        features = sum(r.size * m for r, m in zip(self.rows, ranks)) * bits / 8
+        side = sum((kp * m + 2 * kp + 2 * m) * FLOAT32 for m in ranks)
+        labels = label_entropy_bytes(self.labels) if self.k > 1 else 0.0
+        return {"features": features, "side": float(side), "labels_entropy": labels,
+                "labels_sorted": float(FLOAT32 * self.k if self.k > 1 else 0),
+                "bytes": features + side + labels, "bytes_sorted": features + side + (FLOAT32 * self.k if self.k > 1 else 0)}
+
+
+def bd_rate_mse(ref: list[tuple[float, float]], test: list[tuple[float, float]]) -> float | None:
+    """Mean relative byte change of ``test`` against ``ref`` at equal MSE (log-log, piecewise linear)."""
+    def curve(points):
+        pts = sorted((np.log(m), np.log(b)) for b, m in points)  # by log MSE
+        lm, lb = np.array([p[0] for p in pts]), np.array([p[1] for p in pts])
+        keep = np.concatenate([[True], np.diff(lm) > 1e-9])
+        return lm[keep], lb[keep]
+
+    rm, rb = curve(ref)
+    tm, tb = curve(test)
+    lo, hi = max(rm.min(), tm.min()), min(rm.max(), tm.max())
+    if hi <= lo:
+        return None
+    grid = np.linspace(lo, hi, 200)
+    diff = np.interp(grid, tm, tb) - np.interp(grid, rm, rb)
+    return float(np.expm1(diff.mean()))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("ply")
+    parser.add_argument("out_dir")
+    parser.add_argument("--clusters", default="1,4,8,16,32,64")
+    parser.add_argument("--components", default="3,5,7,9,12,15,18,21,24,30,36,45")
+    parser.add_argument("--er", default="0.8,0.9,0.95,0.97,0.99,0.995,0.999")
+    parser.add_argument("--bits", type=int, default=10)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--cameras", help="cameras.json: also render PSNR vs the uncompressed model")
+    parser.add_argument("--test-every", type=int, default=8)
+    parser.add_argument("--render", default="", help="k:M pairs to render, e.g. 1:9,16:9")
+    args = parser.parse_args(argv)
+
+    from gscodec_shac.io.ply import read_ply
+
+    cloud = read_ply(args.ply)
+    ac = cloud.ac_matrix().astype(np.float64)
+    n = ac.shape[0]
+    ks = [int(v) for v in args.clusters.split(",")]
+    ms = [int(v) for v in args.components.split(",")]
+    ers = [float(v) for v in args.er.split(",")]
+    rows, curves = [], {}
+    for k in ks:
+        tic = time.perf_counter()
+        bases = ClusterBases(ac, cluster_positions(cloud.means, k, args.seed))
+        sizes = [r.size for r in bases.rows]
+        for mode, settings in (("fixed-M", ms), ("ER", ers)):
+            for s in settings:
+                ranks = [min(int(s), ac.shape[1])] * bases.k if mode == "fixed-M" else bases.ranks_for_energy(s)
+                recon = bases.reconstruct(ranks, args.bits)
+                mse = float(((recon - ac) ** 2).mean())
+                rate = bases.rate(ranks, args.bits)
+                row = {"k": k, "mode": mode, "setting": s, "mean_rank": float(np.dot(sizes, ranks) / n),
+                       "mse": mse, **rate, "bits_per_gaussian": 8 * rate["bytes"] / n}
+                rows.append(row)
+                curves.setdefault((k, mode), []).append((rate["bytes"], mse))
+                curves.setdefault((k, mode + "/sorted"), []).append((rate["bytes_sorted"], mse))
+        print(f"k={k}: clusters of {min(sizes)}-{max(sizes)} Gaussians, {time.perf_counter() - tic:.1f} s", file=sys.stderr)
+
+    summary = []
+    for k in ks[1:] if ks[0] == 1 else []:
+        for mode in ("fixed-M", "ER", "fixed-M/sorted", "ER/sorted"):
+            base = curves[(1, mode.split("/")[0])]
+            summary.append({"k": k, "mode": mode, "bd_rate_vs_global": bd_rate_mse(base, curves[(k, mode)])})
+
+    renders = []
+    if args.cameras and args.render:
+        from gscodec_shac.io.cameras import load_cameras
+        from gscodec_shac.metrics import psnr
+        from gscodec_shac.render import Renderer
+
+        cameras = sorted(load_cameras(args.cameras), key=lambda c: c.name)[:: args.test_every]
+        reference = [Renderer(cloud).render(c).image for c in cameras]
+        for pair in args.render.split(","):
+            k, m = (int(v) for v in pair.split(":"))
+            bases = ClusterBases(ac, cluster_positions(cloud.means, k, args.seed))
+            recon = bases.reconstruct([m] * bases.k, args.bits)
+            renderer = Renderer(cloud.with_ac_matrix(recon.astype(np.float32)))
+            value = float(np.mean([psnr(renderer.render(c).image, ref) for c, ref in zip(cameras, reference)]))
+            rate = bases.rate([m] * bases.k, args.bits)
+            renders.append({"k": k, "M": m, "psnr_vs_uncompressed": value, "bytes": rate["bytes"],
+                            "mse": float(((recon - ac) ** 2).mean()), "views": len(cameras)})
+            print(f"render k={k} M={m}: {value:.2f} dB", file=sys.stderr)
+
+    out = Path(args.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    result = {"scene": os.path.abspath(args.ply), "n_gaussians": n, "bits": args.bits, "seed": args.seed,
+              "rows": rows, "bd_rate_vs_global": summary, "renders": renders}
+    (out / "spatial_bases.json").write_text(json.dumps(result, indent=1))
+    _plot(curves, ks, out / "spatial_bases.png", n)
+    for s in summary:
+        value = "n/a" if s["bd_rate_vs_global"] is None else f"{100 * s['bd_rate_vs_global']:+.1f}%"
+        print(f"k={s['k']:3d} {s['mode']:15s} bytes at equal SH MSE vs global: {value}")
+    return 0
+
+
+def _plot(curves: dict, ks: list[int], path: Path, n: int) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), sharey=True)
+    for ax, mode in zip(axes, ("fixed-M", "ER")):
+        for k in ks:
+            pts = sorted(curves[(k, mode)])
+            ax.plot([8 * b / n for b, _ in pts], [m for _, m in pts], marker=".", label=f"k={k}" + (" (global)" if k == 1 else ""))
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("bits per Gaussian (SH features + bases + labels)")
+        ax.set_title(f"one basis per spatial cluster, ranks: {mode}", fontsize=9)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("SH AC MSE")
+    axes[1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
