@@ -3,7 +3,8 @@
     python scripts/ablation_spatial_bases.py SCENE.ply OUT_DIR [--clusters 1,4,8,16,32,64]
         [--components 3,6,...] [--er 0.9,0.95,...] [--bits 10] [--cameras cameras.json --test-every 8]
 
-The Gaussians are split by k-means on their positions (k clusters, seeded); each cluster
+The Gaussians are split by k-means on their positions (k clusters, seeded;
+:func:`gscodec_shac.shac.spatial_pca.cluster_positions`); each cluster
 gets its own SHAC-PCA (eq. 23-29: standardise, principal components, project) of its AC
 matrix, k = 1 being the paper's global basis. Two ways to choose the ranks:
 
@@ -26,6 +27,17 @@ values) against the input, and with ``--cameras`` also the PSNR of renders again
 uncompressed model's renders of the test views (every ``--test-every``-th camera) for the
 configurations listed in ``--render`` (``k:M`` pairs of fixed-M runs).
 
+With ``--codec RATE_POINT`` the bases go through the real codec instead: the SH stage
+``pca-spatial`` (:mod:`gscodec_shac.shac.spatial_pca`; k = 1 is the plain ``pca`` stage) codes
+the per-cluster PCA features as the ``sh_features`` of the rate point (one set of M_c
+channels, zero-padded to the largest rank), and its state carries the k bases and the
+cluster label of every Gaussian in grid order (zlib-deflated by the codec, so the rate
+counts them as coded). Each
+configuration is encoded (one shared grid order), decoded, and scored by the whole file's
+bytes, the SH AC MSE and the render PSNR against the uncompressed model on the test views
+(``--cameras``). ``--codec-clusters``, ``--codec-components`` and ``--codec-er`` choose the
+configurations; ``--preset`` the x265 preset (equal for all).
+
 Equal-rate comparison: for each k, the bytes needed to reach each MSE of the global curve
 (log-log interpolation along the curve), summarised as the mean relative byte change over
 the MSE range both curves cover (a BD-rate in the MSE domain; negative = spatial bases
@@ -44,19 +56,9 @@ from pathlib import Path
 import numpy as np
 
 from gscodec_shac.shac.pca import ShacPCA
-from gscodec_shac.shac.vq import _kmeans, _nearest
+from gscodec_shac.shac.spatial_pca import cluster_positions
 
 FLOAT32 = 4
-
-
-def cluster_positions(positions: np.ndarray, k: int, seed: int = 0, n_iter: int = 20) -> np.ndarray:
-    """k-means labels of the positions (normalised per axis), seeded; k = 1 -> all zero."""
-    if k == 1:
-        return np.zeros(positions.shape[0], dtype=np.int64)
-    x = positions.astype(np.float32)
-    x = (x - x.mean(axis=0)) / np.maximum(x.std(axis=0), 1e-12)
-    centres = _kmeans(x, k, np.random.default_rng(seed), n_iter, "kmeans++")
-    return _nearest(x, centres)
 
 
 def label_entropy_bytes(labels: np.ndarray) -> float:
@@ -135,11 +137,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cameras", help="cameras.json: also render PSNR vs the uncompressed model")
     parser.add_argument("--test-every", type=int, default=8)
     parser.add_argument("--render", default="", help="k:M pairs to render, e.g. 1:9,16:9")
+    parser.add_argument("--codec", help="also code through this rate point, e.g. paper_table3:rp2")
+    parser.add_argument("--codec-clusters", default="1,4,16,64")
+    parser.add_argument("--codec-components", default="6,9,12,18")
+    parser.add_argument("--codec-er", default="0.9,0.95,0.97,0.99")
+    parser.add_argument("--preset", default="veryfast")
     args = parser.parse_args(argv)
 
     from gscodec_shac.io.ply import read_ply
 
     cloud = read_ply(args.ply)
+    if args.codec:
+        return codec_experiment(cloud, args)
     ac = cloud.ac_matrix().astype(np.float64)
     n = ac.shape[0]
     ks = [int(v) for v in args.clusters.split(",")]
@@ -166,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     summary = []
     for k in ks[1:] if ks[0] == 1 else []:
         for mode in ("fixed-M", "ER", "fixed-M/sorted", "ER/sorted"):
-            base = curves[(1, mode.split("/")[0])]
+            base = curves[(1, "fixed-M")]  # the global basis at every rank: its full RD curve
             summary.append({"k": k, "mode": mode, "bd_rate_vs_global": bd_rate_mse(base, curves[(k, mode)])})
 
     renders = []
@@ -198,6 +207,95 @@ def main(argv: list[str] | None = None) -> int:
         value = "n/a" if s["bd_rate_vs_global"] is None else f"{100 * s['bd_rate_vs_global']:+.1f}%"
         print(f"k={s['k']:3d} {s['mode']:15s} bytes at equal SH MSE vs global: {value}")
     return 0
+
+
+# ------------------------------------------------------------------ real codec
+def codec_experiment(cloud, args) -> int:
+    """Encode, decode and score every (k, ranks) configuration through the rate point ``args.codec``."""
+    import zlib
+
+    from gscodec_shac.codec import Decoder, Encoder
+    from gscodec_shac.codec.container import Bitstream
+    from gscodec_shac.io.cameras import load_cameras
+    from gscodec_shac.shac.base import StageState, stage_from_state
+    from gscodec_shac.metrics import psnr
+    from gscodec_shac.render import Renderer
+
+    ac = cloud.ac_matrix()
+    cameras = sorted(load_cameras(args.cameras), key=lambda c: c.name)[:: args.test_every] if args.cameras else []
+    reference = [Renderer(cloud).render(c).image for c in cameras]
+    grid = Encoder(args.codec, sh_stage="pca").grid_order(cloud)
+    rows = []
+    for k in [int(v) for v in args.codec_clusters.split(",")]:
+        settings = [("fixed-M", int(m)) for m in args.codec_components.split(",")]
+        settings += [("ER", float(e)) for e in args.codec_er.split(",")]
+        for mode, value in settings:
+            params = {"n_components": value} if mode == "fixed-M" else {"energy_retention": value}
+            if k > 1:
+                params.update(spatial_clusters=k, seed=args.seed)
+            encoder = Encoder(args.codec, sh_stage="pca" if k == 1 else "pca-spatial", sh_params=params,
+                              codec_options={"preset": args.preset}, workers=1)
+            data = encoder.encode(cloud, grid=grid).to_bytes()
+            decoded = Decoder(workers=1).decode(data)
+            mse = float(((decoded.ac_matrix() - ac[encoder.order_]) ** 2).mean())
+            renderer = Renderer(decoded)
+            value_psnr = float(np.mean([psnr(renderer.render(c).image, r) for c, r in zip(cameras, reference)])) \
+                if cameras else None
+            stream = Bitstream.from_bytes(data)
+            chunks = stream.sizes()
+            fitted = stage_from_state(StageState.from_bytes(zlib.decompress(stream.chunk("sh_state").data)))
+            ranks = fitted.ranks() if k > 1 else [fitted.n_components_]
+            counts = np.bincount(fitted.labels_, minlength=len(ranks)) if k > 1 else np.array([len(ac)])
+            row = {"k": k, "mode": mode, "setting": value, "bytes": len(data), "bits_per_gaussian": 8 * len(data) / len(ac),
+                   "sh_bytes": sum(v for key, v in chunks.items() if key.startswith("sh") and key != "sh_dc"),
+                   "sh_state_bytes": chunks.get("sh_state", 0), "mse": mse, "psnr_vs_uncompressed": value_psnr,
+                   "coded_channels": max(ranks), "mean_rank": float(np.dot(counts, ranks) / counts.sum())}
+            rows.append(row)
+            print(f"k={k} {mode} {value}: {len(data):,} B, SH {row['sh_bytes']:,} B (state {row['sh_state_bytes']:,}), "
+                  f"MSE {mse:.3e}, PSNR {value_psnr if value_psnr is None else round(value_psnr, 3)}", file=sys.stderr)
+    summary = []
+    base = [(r["bytes"], r["psnr_vs_uncompressed"]) for r in rows if r["k"] == 1 and r["mode"] == "fixed-M"]
+    if cameras and len(base) >= 2:
+        from gscodec_shac.rd.bd import bd_rate
+
+        for k in sorted({r["k"] for r in rows} - {1}):
+            for mode in ("fixed-M", "ER"):
+                test = [(r["bytes"], r["psnr_vs_uncompressed"]) for r in rows if r["k"] == k and r["mode"] == mode]
+                res = bd_rate([b for b, _ in base], [q for _, q in base], [b for b, _ in test], [q for _, q in test])
+                summary.append({"k": k, "mode": mode, "bd_rate_pct_vs_global_fixed_M": res.value, "note": res.reason})
+                print(f"k={k:3d} {mode:8s} BD-rate (render PSNR vs uncompressed) vs global basis: {res.value:+.1f}% "
+                      f"{res.reason or ''}")
+    out = Path(args.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "spatial_bases_codec.json").write_text(json.dumps({
+        "scene": os.path.abspath(args.ply), "rate_point": args.codec, "preset": args.preset, "views": len(cameras),
+        "rows": rows, "bd_rate": summary}, indent=1))
+    _plot_codec(rows, out / "spatial_bases_codec.png", args.codec)
+    return 0
+
+
+def _plot_codec(rows: list[dict], path: Path, rate_point: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    for k in sorted({r["k"] for r in rows}):
+        for mode, style in (("fixed-M", "o-"), ("ER", "s--")):
+            pts = sorted((r["bits_per_gaussian"], r["psnr_vs_uncompressed"]) for r in rows
+                         if r["k"] == k and r["mode"] == mode and r["psnr_vs_uncompressed"] is not None)
+            if pts and not (k == 1 and mode == "ER"):
+                ax.plot([p[0] for p in pts], [p[1] for p in pts], style, markersize=3,
+                        label=f"k={k} {mode}" if k > 1 else "global basis (k=1)")
+    ax.set_xlabel("bits per Gaussian (whole file)")
+    ax.set_ylabel("PSNR vs uncompressed (dB)")
+    ax.set_title(f"spatial PCA bases through the codec ({rate_point})", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 def _plot(curves: dict, ks: list[int], path: Path, n: int) -> None:
