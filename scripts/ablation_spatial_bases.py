@@ -142,10 +142,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--codec-components", default="6,9,12,18")
     parser.add_argument("--codec-er", default="0.9,0.95,0.97,0.99")
     parser.add_argument("--preset", default="veryfast")
+    parser.add_argument("--replot", action="store_true", help="with --codec: report again from OUT_DIR's JSON")
     args = parser.parse_args(argv)
 
     from gscodec_shac.io.ply import read_ply
 
+    if args.codec and args.replot:  # tables and figure again from the JSON of an earlier run
+        data = json.loads((Path(args.out_dir) / "spatial_bases_codec.json").read_text())
+        rows = data.pop("rows")
+        data.pop("bd_rate", None)
+        _codec_report(rows, data, Path(args.out_dir))
+        return 0
     cloud = read_ply(args.ply)
     if args.codec:
         return codec_experiment(cloud, args)
@@ -253,25 +260,34 @@ def codec_experiment(cloud, args) -> int:
             rows.append(row)
             print(f"k={k} {mode} {value}: {len(data):,} B, SH {row['sh_bytes']:,} B (state {row['sh_state_bytes']:,}), "
                   f"MSE {mse:.3e}, PSNR {value_psnr if value_psnr is None else round(value_psnr, 3)}", file=sys.stderr)
-    summary = []
-    base = [(r["bytes"], r["psnr_vs_uncompressed"]) for r in rows if r["k"] == 1 and r["mode"] == "fixed-M"]
-    if cameras and len(base) >= 2:
-        from gscodec_shac.rd.bd import bd_rate
+    meta = {"scene": os.path.abspath(args.ply), "rate_point": args.codec, "preset": args.preset, "views": len(cameras)}
+    _codec_report(rows, meta, Path(args.out_dir))
+    return 0
 
+
+def _global_curve(rows: list[dict]) -> list[dict]:
+    """The k = 1 rows (fixed M and ER alike: the same stage), one per rank, by size."""
+    by_rank = {r["mean_rank"]: r for r in rows if r["k"] == 1}
+    return sorted(by_rank.values(), key=lambda r: r["bytes"])
+
+
+def _codec_report(rows: list[dict], meta: dict, out: Path) -> None:
+    """BD-rates against the global basis, the JSON and the figure."""
+    from gscodec_shac.rd.bd import bd_rate
+
+    summary = []
+    base = [(r["bytes"], r["psnr_vs_uncompressed"]) for r in _global_curve(rows)]
+    if meta["views"] and len(base) >= 2:
         for k in sorted({r["k"] for r in rows} - {1}):
             for mode in ("fixed-M", "ER"):
                 test = [(r["bytes"], r["psnr_vs_uncompressed"]) for r in rows if r["k"] == k and r["mode"] == mode]
                 res = bd_rate([b for b, _ in base], [q for _, q in base], [b for b, _ in test], [q for _, q in test])
-                summary.append({"k": k, "mode": mode, "bd_rate_pct_vs_global_fixed_M": res.value, "note": res.reason})
+                summary.append({"k": k, "mode": mode, "bd_rate_pct_vs_global": res.value, "note": res.reason})
                 print(f"k={k:3d} {mode:8s} BD-rate (render PSNR vs uncompressed) vs global basis: {res.value:+.1f}% "
                       f"{res.reason or ''}")
-    out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "spatial_bases_codec.json").write_text(json.dumps({
-        "scene": os.path.abspath(args.ply), "rate_point": args.codec, "preset": args.preset, "views": len(cameras),
-        "rows": rows, "bd_rate": summary}, indent=1))
-    _plot_codec(rows, out / "spatial_bases_codec.png", args.codec)
-    return 0
+    (out / "spatial_bases_codec.json").write_text(json.dumps({**meta, "rows": rows, "bd_rate": summary}, indent=1))
+    _plot_codec(rows, out / "spatial_bases_codec.png", meta["rate_point"])
 
 
 def _plot_codec(rows: list[dict], path: Path, rate_point: str) -> None:
@@ -281,13 +297,15 @@ def _plot_codec(rows: list[dict], path: Path, rate_point: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
-    for k in sorted({r["k"] for r in rows}):
+    glob = [(r["bits_per_gaussian"], r["psnr_vs_uncompressed"]) for r in _global_curve(rows)
+            if r["psnr_vs_uncompressed"] is not None]
+    ax.plot([p[0] for p in glob], [p[1] for p in glob], "k-", marker="o", markersize=3, label="global basis (k=1)")
+    for k in sorted({r["k"] for r in rows} - {1}):
         for mode, style in (("fixed-M", "o-"), ("ER", "s--")):
             pts = sorted((r["bits_per_gaussian"], r["psnr_vs_uncompressed"]) for r in rows
                          if r["k"] == k and r["mode"] == mode and r["psnr_vs_uncompressed"] is not None)
-            if pts and not (k == 1 and mode == "ER"):
-                ax.plot([p[0] for p in pts], [p[1] for p in pts], style, markersize=3,
-                        label=f"k={k} {mode}" if k > 1 else "global basis (k=1)")
+            if pts:
+                ax.plot([p[0] for p in pts], [p[1] for p in pts], style, markersize=3, label=f"k={k} {mode}")
     ax.set_xlabel("bits per Gaussian (whole file)")
     ax.set_ylabel("PSNR vs uncompressed (dB)")
     ax.set_title(f"spatial PCA bases through the codec ({rate_point})", fontsize=9)
@@ -305,11 +323,19 @@ def _plot(curves: dict, ks: list[int], path: Path, n: int) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), sharey=True)
+    from matplotlib.ticker import NullFormatter
+
     for ax, mode in zip(axes, ("fixed-M", "ER")):
         for k in ks:
+            if k == 1 and mode == "ER":
+                continue
             pts = sorted(curves[(k, mode)])
             ax.plot([8 * b / n for b, _ in pts], [m for _, m in pts], marker=".", label=f"k={k}" + (" (global)" if k == 1 else ""))
+        if mode == "ER" and 1 in ks:  # the reference of the comparison: the global basis at every rank
+            pts = sorted(curves[(1, "fixed-M")])
+            ax.plot([8 * b / n for b, _ in pts], [m for _, m in pts], "k--", lw=1, label="global, every M")
         ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_yscale("log")
         ax.set_xlabel("bits per Gaussian (SH features + bases + labels)")
         ax.set_title(f"one basis per spatial cluster, ranks: {mode}", fontsize=9)
