@@ -46,7 +46,8 @@ FAMILIES = ("truncate", "bytes", "resigned", "header", "state", "resize")
 TARGETS = ("decode", "info")
 #: The SH stages of the synthetic seeds, and the rate point each is coded with.
 SEED_STAGES = {"none": "paper_table3:rp2", "trunc": "mpeg_ctc_video:rp01", "pca": "shac_recommended:rp2",
-               "lst": "shac_recommended:rp3", "vq": "gsplat_png"}
+               "lst": "shac_recommended:rp3", "vq": "gsplat_png", "vq-pca": "gsplat_png",
+               "pca-spatial": "shac_recommended:rp2"}
 _PREAMBLE = struct.Struct("<8sHHII")
 _DEEP = "__deep_nesting__"
 _DEEP_TOKEN = re.compile(f'"{_DEEP}(\\d+)"')
@@ -76,7 +77,8 @@ def seed_streams(n: int = 300, seed: int = 0, fixtures: str | Path | None = None
     from gscodec_shac.synthetic import make_synthetic_scene
 
     cloud = make_synthetic_scene(n, seed=seed, n_cameras=1, width=32, height=24).cloud
-    params = {"trunc": {"degree": 1}, "pca": {"n_components": 6}, "vq": {"n_clusters": 32}}
+    params = {"trunc": {"degree": 1}, "pca": {"n_components": 6}, "vq": {"n_clusters": 32},
+              "vq-pca": {"n_clusters": 32}, "pca-spatial": {"spatial_clusters": 2, "n_components": 6}}
     seeds = {
         f"stage_{stage}": Encoder(point, sh_stage=stage, sh_params=params.get(stage), workers=1,
                                   codec_options={"preset": "ultrafast"} if "mpeg" in point or "paper" in point else None)

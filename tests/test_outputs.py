@@ -319,7 +319,7 @@ def test_warnings_become_one_line(scene, tmp_path):
 def test_encoding_is_byte_identical_across_workers(stage):
     cloud = make_synthetic_scene(600, seed=4, n_cameras=1, width=32, height=24).cloud
     point = fuzz.SEED_STAGES[stage]
-    params = {"trunc": {"degree": 1}, "vq": {"n_clusters": 64}}.get(stage)
+    params = {"trunc": {"degree": 1}, "vq": {"n_clusters": 64}, "vq-pca": {"n_clusters": 64}}.get(stage)
     digests = {hashlib.sha256(Encoder(point, sh_stage=stage, sh_params=params, workers=w,
                                       codec_options={"preset": "ultrafast"} if "hevc" in _codecs(point) else None)
                               .encode(cloud).to_bytes()).hexdigest() for w in (1, 2, 4)}

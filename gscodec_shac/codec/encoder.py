@@ -204,7 +204,10 @@ class Encoder:
         ac = cloud.ac_matrix()
         if stage.uses_dc:
             ac = np.concatenate([cloud.sh_dc, ac], axis=1)
-        features = stage.fit_transform(ac) if (self.fit_stage or self._stage_instance is None) else stage.transform(ac)
+        fit = self.fit_stage or self._stage_instance is None
+        if fit and stage.uses_positions:
+            stage.set_positions(cloud.means)
+        features = stage.fit_transform(ac) if fit else stage.transform(ac)
         return stage, np.asarray(features)
 
     def _code_position_set(self, values: np.ndarray, spec: AttributeSpec, stream: Bitstream) -> dict:

@@ -155,6 +155,8 @@ def format_set(described: dict[str, Any]) -> str:
 
 def _cells(point: dict[str, Any]) -> dict[str, Any]:
     """The displayed settings of one resolved point (``RatePoint.to_json``)."""
+    from gscodec_shac.shac.base import STAGES
+
     attributes = point["attributes"]
     codec = attributes["opacity"]["codec"]
     out: dict[str, Any] = {
@@ -166,7 +168,8 @@ def _cells(point: dict[str, Any]) -> dict[str, Any]:
         out[name] = _qp_bits(attributes[name], codec)
     sh = dict(point["sh"])
     stage = sh.pop("stage")
-    out["sh_labels"] = _qp_bits(attributes["sh_labels"], codec) if stage == "vq" else None
+    labelled = stage in STAGES and STAGES.get(stage).rate_attribute == "sh_labels"  # vq, vq-pca
+    out["sh_labels"] = _qp_bits(attributes["sh_labels"], codec) if labelled else None
     out["SH stage"] = " ".join([stage, *(f"{k}={v}" for k, v in sh.items())])
     out["SH allocation"] = attributes["sh_features"].get("allocation", "degree")
     out["colour"] = point["color"]

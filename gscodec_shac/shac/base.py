@@ -172,6 +172,13 @@ class ShStage(ABC):
     #: Show a progress bar while fitting (a stage with a long fit honours it, e.g. vq's k-means);
     #: the :class:`~gscodec_shac.codec.encoder.Encoder` sets it from its own ``progress``.
     progress: bool = False
+    #: True when :meth:`fit` also needs the Gaussians' positions (e.g. pca-spatial): the
+    #: :class:`~gscodec_shac.codec.encoder.Encoder` hands them over with :meth:`set_positions` first.
+    uses_positions: ClassVar[bool] = False
+
+    def set_positions(self, positions: np.ndarray) -> None:
+        """The (N, 3) positions of the rows the next :meth:`fit` sees (stages with ``uses_positions``)."""
+        self.positions_ = np.asarray(positions, dtype=np.float64)
 
     @abstractmethod
     def fit(self, ac: np.ndarray) -> "ShStage":
@@ -252,7 +259,7 @@ class ShStage(ABC):
 
 
 # ------------------------------------------------------------------------ registry
-STAGES: Registry[ShStage] = Registry("SH stage", "gscodec_shac.shac", ("identity", "truncation", "pca", "lst", "vq"))
+STAGES: Registry[ShStage] = Registry("SH stage", "gscodec_shac.shac", ("identity", "truncation", "pca", "lst", "vq", "vq_pca", "spatial_pca"))
 register_stage = STAGES.register
 
 

@@ -1,0 +1,225 @@
+"""Spatially varying SHAC-PCA bases (stage ``"pca-spatial"``; beyond the paper, its Sec. IX).
+
+The paper uses one global basis P for the whole scene and names "spatially varying
+transformations" as future work for scenes with strong spatial appearance variation.
+This stage splits the Gaussians into ``spatial_clusters`` regions by k-means on their
+positions (each axis standardised, k-means++ seeded, fixed iterations) and fits one
+SHAC-PCA (eq. 23-29, :class:`~gscodec_shac.shac.pca.ShacPCA`) per region:
+
+* ``n_components`` M given: every region keeps M components;
+* else ``energy_retention`` (0.99 by default): every region keeps the fewest components
+  reaching it (eq. 26-27), so a simple region may keep fewer than a busy one.
+
+The features are the regions' scores in one set of ``max M_c`` channels (a region with a
+lower rank leaves its trailing channels at 0), coded like SHAC-PCA's. The state holds
+every region's P, mu, sigma (float32) and the region label of every Gaussian, in the
+order the features are coded (the codec's grid order); the codec deflates it, so the
+labels are counted in the rate. The decoder needs no positions.
+
+Positions come from the encoder (``uses_positions``: :meth:`set_positions` before
+:meth:`fit`). :meth:`transform` and :meth:`inverse_transform` work on the N fitted rows in
+their order; any other row count (the decoder's one-row probe of a state) takes the first
+region's basis. Measured on bonsai: docs/ablations.md ("Spatially varying bases").
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from gscodec_shac.errors import GscodecError, ValidationError
+from gscodec_shac.shac.base import ShStage, StageParam, StageState, check_ac_matrix, register_stage
+from gscodec_shac.shac.pca import DEFAULT_ENERGY_RETENTION, ShacPCA
+from gscodec_shac.shac.vq import _kmeans, _nearest
+from gscodec_shac.validate import Where
+
+MAX_REGIONS = 255
+#: Fewest rows a region keeps its own basis for (smaller k-means regions are merged).
+MIN_REGION_ROWS = 64
+
+
+def cluster_positions(positions: np.ndarray, k: int, seed: int = 0, n_iter: int = 20) -> np.ndarray:
+    """Region label (0..k'-1, consecutive) of each position by k-means; k' <= k, as regions of fewer
+    than ``MIN_REGION_ROWS`` rows are merged into the nearest larger one. Independent of the row order."""
+    x = np.asarray(positions, dtype=np.float64)
+    if k <= 1 or x.shape[0] <= 1:
+        return np.zeros(x.shape[0], dtype=np.int64)
+    x = ((x - x.mean(axis=0)) / np.maximum(x.std(axis=0), 1e-12)).astype(np.float32)
+    canonical = x[np.lexsort(x.T[::-1])]  # the regions do not depend on the row order
+    centres = _kmeans(canonical, min(k, x.shape[0]), np.random.default_rng(seed), n_iter, "kmeans++")
+    labels = _nearest(x, centres)
+    large = np.bincount(labels, minlength=centres.shape[0]) >= MIN_REGION_ROWS
+    if not large.any():
+        return np.zeros(x.shape[0], dtype=np.int64)
+    if not large.all():  # a region too small for a PCA joins the nearest large one
+        labels = np.flatnonzero(large)[_nearest(x, centres[large])]
+    _, labels = np.unique(labels, return_inverse=True)  # consecutive labels
+    return labels.astype(np.int64)
+
+
+@register_stage
+class SpatialPCA(ShStage):
+    """SH stage "pca-spatial": one SHAC-PCA basis per spatial k-means region (see module docstring).
+
+    Fitted attributes: ``labels_`` (N,) region of each row, ``pcas_`` one fitted
+    :class:`ShacPCA` per region, ``n_components_`` the coded channels (max M_c).
+    """
+
+    name = "pca-spatial"
+    summary = "SHAC-PCA with one basis per spatial k-means region (paper Sec. IX, future work)"
+    feature_kind = "components"
+    rate_attribute = "sh_features"
+    uses_positions = True
+    params = (
+        StageParam("spatial_clusters", "int", 16, "spatial regions, each with its own PCA basis",
+                   flag="spatial_clusters", lo=1, hi=MAX_REGIONS),
+        StageParam("energy_retention", "float", DEFAULT_ENERGY_RETENTION,
+                   "energy retention ER(M) (eq. 26) each region's components reach", flag="er", lo=0.0, hi=1.0,
+                   open_lo=True),
+        StageParam("n_components", "int", None, "components M of every region (instead of an ER)",
+                   flag="components", lo=1, hi=128),
+        StageParam("seed", "int", 0, "seed of the spatial k-means (encode's --seed sets it too)", lo=0, hi=2**32 - 1),
+    )
+
+    @classmethod
+    def check_params(cls, raw: Any, where: Where, prefix: str = "") -> dict[str, Any]:
+        params = super().check_params(raw, where, prefix)
+        if "energy_retention" in params and "n_components" in params:
+            raise where.error(prefix, "give energy_retention or n_components, not both")
+        return params
+
+    def __init__(self, spatial_clusters: int = 16, energy_retention: float | None = None,
+                 n_components: int | None = None, seed: int = 0) -> None:
+        if isinstance(spatial_clusters, bool) or not isinstance(spatial_clusters, (int, np.integer)) \
+                or not 1 <= spatial_clusters <= MAX_REGIONS:
+            raise ValidationError(f"pca-spatial: spatial_clusters must be an integer in 1-{MAX_REGIONS}, "
+                                  f"got {spatial_clusters!r}")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValidationError(f"pca-spatial: seed must be a non-negative integer, got {seed!r}")
+        ShacPCA(n_components=n_components, energy_retention=energy_retention)  # validates both
+        self.spatial_clusters = int(spatial_clusters)
+        self.energy_retention = energy_retention
+        self.n_components = n_components
+        self.seed = int(seed)
+        self.positions_: np.ndarray | None = None
+        self.labels_: np.ndarray | None = None
+        self.pcas_: list[ShacPCA] | None = None
+
+    # ----------------------------------------------------------------- fit
+    def fit(self, ac: np.ndarray) -> "SpatialPCA":
+        """Regions from the positions (:meth:`set_positions`), then one SHAC-PCA per region."""
+        ac = check_ac_matrix(ac)
+        if self.positions_ is None or self.positions_.shape != (ac.shape[0], 3):
+            raise ValidationError("pca-spatial needs the positions of the rows it fits (set_positions)")
+        labels = cluster_positions(self.positions_, self.spatial_clusters, self.seed)
+        pcas = []
+        for region in range(int(labels.max()) + 1):
+            rows = ac[labels == region]
+            m = None if self.n_components is None else min(self.n_components, ac.shape[1])
+            pcas.append(ShacPCA(n_components=m, energy_retention=None if m else self.energy_retention).fit(rows))
+        self.labels_, self.pcas_ = labels, pcas
+        return self
+
+    # ------------------------------------------------------------ transform
+    def _row_labels(self, rows: int) -> np.ndarray:
+        return self.labels_ if rows == self.labels_.size else np.zeros(rows, dtype=np.int64)
+
+    def transform(self, ac: np.ndarray) -> np.ndarray:
+        """(N, K') -> (N, max M_c) region scores (eq. 28 per region), zero past a region's rank."""
+        self._check_fitted()
+        ac = check_ac_matrix(ac, self.pcas_[0].n_ac_columns)
+        labels = self._row_labels(ac.shape[0])
+        out = np.zeros((ac.shape[0], self.n_components_), dtype=np.result_type(ac.dtype, np.float32))
+        for region, pca in enumerate(self.pcas_):
+            rows = labels == region
+            if rows.any():
+                out[rows, : pca.n_components_] = pca.transform(ac[rows])
+        return out
+
+    def inverse_transform(self, features: np.ndarray) -> np.ndarray:
+        """(N, max M_c) -> (N, K'): each row through its region's basis (eq. 29)."""
+        self._check_fitted()
+        features = check_ac_matrix(features, self.n_components_)
+        labels = self._row_labels(features.shape[0])
+        out = np.zeros((features.shape[0], self.pcas_[0].n_ac_columns), dtype=np.result_type(features.dtype, np.float32))
+        for region, pca in enumerate(self.pcas_):
+            rows = labels == region
+            if rows.any():
+                out[rows] = pca.inverse_transform(features[rows, : pca.n_components_])
+        return out
+
+    def feature_weights(self) -> np.ndarray:
+        """Each channel's weight (see ShacPCA) averaged over the rows of the regions that use it."""
+        self._check_fitted()
+        counts = np.bincount(self.labels_, minlength=len(self.pcas_)).astype(np.float64)
+        weights = np.zeros(self.n_components_)
+        for count, pca in zip(counts, self.pcas_):
+            weights[: pca.n_components_] += count * pca.feature_weights()
+        return weights / max(counts.sum(), 1.0)
+
+    def keep_features(self, count: int) -> None:
+        """Keep the first ``count`` channels: every region keeps at most ``count`` components."""
+        self._check_fitted()
+        if not 1 <= count <= self.n_components_:
+            raise ValidationError(f"pca-spatial can keep 1 to {self.n_components_} components, not {count}")
+        for pca in self.pcas_:
+            if pca.n_components_ > count:
+                pca.keep_features(count)
+
+    # ---------------------------------------------------------------- sizes
+    @property
+    def n_components_(self) -> int:
+        self._check_fitted()
+        return max(p.n_components_ for p in self.pcas_)
+
+    @property
+    def n_features(self) -> int:
+        return self.n_components_
+
+    def ranks(self) -> list[int]:
+        """M_c of every region."""
+        self._check_fitted()
+        return [int(p.n_components_) for p in self.pcas_]
+
+    def state(self) -> StageState:
+        """Region labels (uint8, row order) and every region's SHAC-PCA state (float32)."""
+        self._check_fitted()
+        arrays: dict[str, np.ndarray] = {"labels": self.labels_.astype(np.uint8)}
+        regions = []
+        for region, pca in enumerate(self.pcas_):
+            state = pca.state()
+            regions.append(state.params)
+            arrays.update({f"r{region}_{key}": value for key, value in state.arrays.items()})
+        return StageState(self.name, {"regions": regions, "spatial_clusters": self.spatial_clusters}, arrays)
+
+    @classmethod
+    def from_state(cls, state: StageState) -> "SpatialPCA":
+        try:
+            regions = state.params["regions"]
+            labels = np.asarray(state.arrays["labels"])
+            if not isinstance(regions, list) or not 1 <= len(regions) <= MAX_REGIONS:
+                raise ValueError("regions")
+            pcas = []
+            for region, params in enumerate(regions):
+                prefix = f"r{region}_"
+                arrays = {key[len(prefix):]: v for key, v in state.arrays.items() if key.startswith(prefix)}
+                pcas.append(ShacPCA.from_state(StageState("pca", params, arrays)))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise GscodecError(f"pca-spatial state is incomplete ({exc})") from None
+        columns = {p.n_ac_columns for p in pcas}
+        if (len(columns) != 1 or any(p.include_dc or not p.joint_rgb for p in pcas) or labels.ndim != 1
+                or labels.dtype != np.uint8 or (labels.size and int(labels.max()) >= len(pcas))):
+            raise GscodecError("pca-spatial state is inconsistent (regions, columns or labels)")
+        stage = cls(spatial_clusters=max(1, len(pcas)))
+        stage.labels_, stage.pcas_ = labels.astype(np.int64), pcas
+        return stage
+
+    def _check_fitted(self) -> None:
+        if self.pcas_ is None:
+            raise ValidationError("this pca-spatial stage is not fitted yet; call set_positions() and fit() first")
+
+    def __repr__(self) -> str:
+        if self.pcas_ is None:
+            return f"SpatialPCA(unfitted, spatial_clusters={self.spatial_clusters})"
+        return f"SpatialPCA(regions={len(self.pcas_)}, ranks={self.ranks()})"
