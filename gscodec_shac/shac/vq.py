@@ -220,16 +220,7 @@ class VectorQuantizer(ShStage):
     def inverse_transform(self, features: np.ndarray) -> np.ndarray:
         """Labels (N, 1) -> codebook rows (N, K') as float32."""
         self._check_fitted()
-        features = np.asarray(features)
-        if features.ndim != 2 or features.shape[1] != 1:
-            raise ValidationError(f"vq features must be one label column (N, 1), got shape {features.shape}")
-        labels = features[:, 0]
-        if not np.isfinite(labels).all() or np.any(labels != np.round(labels)):
-            raise ValidationError("vq labels must be integers")
-        labels = labels.astype(np.int64)
-        if labels.size and (labels.min() < 0 or labels.max() >= self.codebook_.shape[0]):
-            raise ValidationError(f"vq labels must lie in 0..{self.codebook_.shape[0] - 1}")
-        return self.codebook_[labels]
+        return lookup_labels(self.codebook_, features, self.name)
 
     # ---------------------------------------------------------------- sizes
     @property
@@ -344,3 +335,17 @@ def _quantize_codebook(centres: np.ndarray, bits: int) -> tuple[np.ndarray, np.n
 def _dequantize_codebook(codes: np.ndarray, lo: np.ndarray, hi: np.ndarray, bits: int) -> np.ndarray:
     step = (hi.astype(np.float64) - lo) / ((1 << bits) - 1)
     return (lo + codes.astype(np.float64) * step).astype(np.float32)
+
+
+def lookup_labels(codebook: np.ndarray, features: np.ndarray, stage: str) -> np.ndarray:
+    """Codebook rows for a label column (N, 1), checking the labels are integers in range."""
+    features = np.asarray(features)
+    if features.ndim != 2 or features.shape[1] != 1:
+        raise ValidationError(f"{stage} features must be one label column (N, 1), got shape {features.shape}")
+    labels = features[:, 0]
+    if not np.isfinite(labels).all() or np.any(labels != np.round(labels)):
+        raise ValidationError(f"{stage} labels must be integers")
+    labels = labels.astype(np.int64)
+    if labels.size and (labels.min() < 0 or labels.max() >= codebook.shape[0]):
+        raise ValidationError(f"{stage} labels must lie in 0..{codebook.shape[0] - 1}")
+    return codebook[labels]

@@ -31,7 +31,7 @@ import numpy as np
 from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac.shac.base import ShStage, StageParam, StageState, check_ac_matrix, register_stage
 from gscodec_shac.shac.pca import DEFAULT_ENERGY_RETENTION, ShacPCA
-from gscodec_shac.shac.vq import INITS, VectorQuantizer, _dequantize_codebook, _nearest, _quantize_codebook
+from gscodec_shac.shac.vq import INITS, VectorQuantizer, _dequantize_codebook, _nearest, _quantize_codebook, lookup_labels
 from gscodec_shac.validate import Where
 
 #: Bits per component of the k-means codebook before the PCA (effectively float).
@@ -155,16 +155,7 @@ class VqPca(ShStage):
     def inverse_transform(self, features: np.ndarray) -> np.ndarray:
         """Labels (N, 1) -> rebuilt codebook rows (N, K') as float32."""
         self._check_fitted()
-        features = np.asarray(features)
-        if features.ndim != 2 or features.shape[1] != 1:
-            raise ValidationError(f"vq-pca features must be one label column (N, 1), got shape {features.shape}")
-        labels = features[:, 0]
-        if not np.isfinite(labels).all() or np.any(labels != np.round(labels)):
-            raise ValidationError("vq-pca labels must be integers")
-        labels = labels.astype(np.int64)
-        if labels.size and (labels.min() < 0 or labels.max() >= self.codebook_.shape[0]):
-            raise ValidationError(f"vq-pca labels must lie in 0..{self.codebook_.shape[0] - 1}")
-        return self.codebook_[labels]
+        return lookup_labels(self.codebook_, features, self.name)
 
     # ---------------------------------------------------------------- sizes
     @property
