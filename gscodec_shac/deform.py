@@ -15,7 +15,7 @@ Network (:class:`DeformNetwork`, sizes in :class:`DeformArch`): NeRF positional 
 of ``x`` (``L_x = 10`` octaves, input included: 63 values) and of ``t`` (``L_t = 6``: 13
 values); for D-NeRF the time code first passes a small time net (13 -> 256 -> 30, ReLU).
 ``depth`` fully connected ReLU layers of ``width`` with the encoded input concatenated again
-after layer ``depth // 2``, then three linear heads (3, 4, 3). The reference is ``depth=8,
+after layer ``depth // 2`` (0-based; none when that is the last layer), then three linear heads (3, 4, 3). The reference is ``depth=8,
 width=256`` (about 0.52 M weights); ``depth=4, width=128`` is our CPU option. The heads start
 at zero (the reference uses PyTorch's default initialisation), so deformation starts as the
 identity when it is switched on after the static warm-up.
@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -38,70 +38,15 @@ import numpy as np
 import gscodec_shac.render  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads OpenMP)
 import torch  # noqa: E402
 
+from gscodec_shac.deform_arch import ARCH_FILE, MODEL_PLY, WEIGHTS_FILE, DeformArch, is_dynamic_model
 from gscodec_shac.errors import ModelFormatError
 from gscodec_shac.gaussians import GaussianCloud
 
 PathLike = str | os.PathLike
-MODEL_PLY = "point_cloud.ply"
-WEIGHTS_FILE = "deformation.npz"
-ARCH_FILE = "deformation.json"
 ARCH_FORMAT = "gscodec-shac-deformation"
 ARCH_VERSION = 1
-MAX_WIDTH = 4096
-MAX_DEPTH = 32
-
-
-@dataclass(frozen=True)
-class DeformArch:
-    """Sizes of the deformation MLP (defaults: the reference's D-NeRF network)."""
-
-    depth: int = 8
-    width: int = 256
-    xyz_freqs: int = 10
-    t_freqs: int = 6
-    time_net: bool = True
-    time_width: int = 256
-    time_out: int = 30
-
-    def validate(self) -> "DeformArch":
-        for key in ("depth", "width", "xyz_freqs", "t_freqs", "time_width", "time_out"):
-            value = getattr(self, key)
-            if isinstance(value, bool) or not isinstance(value, int) or value < (0 if "freqs" in key else 1):
-                raise ModelFormatError(f"deformation architecture: {key} must be a positive integer, got {value!r}")
-        if self.depth > MAX_DEPTH or self.width > MAX_WIDTH or self.time_width > MAX_WIDTH or self.time_out > MAX_WIDTH:
-            raise ModelFormatError(f"deformation architecture too large: {asdict(self)}")
-        if self.xyz_freqs > 20 or self.t_freqs > 20:
-            raise ModelFormatError("deformation architecture: at most 20 encoding octaves")
-        if not isinstance(self.time_net, bool):
-            raise ModelFormatError("deformation architecture: time_net must be true or false")
-        return self
-
-    @property
-    def xyz_dims(self) -> int:
-        return 3 + 6 * self.xyz_freqs
-
-    @property
-    def t_dims(self) -> int:
-        return 1 + 2 * self.t_freqs
-
-    @property
-    def input_dims(self) -> int:
-        return self.xyz_dims + (self.time_out if self.time_net else self.t_dims)
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: Any) -> "DeformArch":
-        if not isinstance(data, dict):
-            raise ModelFormatError("deformation architecture must be a JSON object")
-        names = {f.name for f in fields(cls)}
-        unknown = set(data) - names
-        if unknown:
-            raise ModelFormatError(f"deformation architecture: unknown key(s) {sorted(unknown)}")
-        return cls(**data).validate()
-
-
+__all__ = ["DeformArch", "DeformNetwork", "DynamicModel", "deform_tensors", "deformed_cloud", "load_dynamic_model",
+           "save_dynamic_model", "is_dynamic_model", "positional_encoding"]
 def positional_encoding(x: torch.Tensor, octaves: int) -> torch.Tensor:
     """``[x, sin(2^k x), cos(2^k x)]`` for ``k = 0 .. octaves-1`` (NeRF's encoding), on the last axis."""
     if octaves == 0:
@@ -123,7 +68,7 @@ class DeformNetwork(torch.nn.Module):
                                                     torch.nn.Linear(a.time_width, a.time_out)])
         else:
             self.time_layers = torch.nn.ModuleList()
-        self.skip = a.depth // 2
+        self.skip = a.depth // 2 if a.depth // 2 < a.depth - 1 else -1  # no skip after the last layer
         layers = [torch.nn.Linear(a.input_dims, a.width)]
         for i in range(a.depth - 1):
             layers.append(torch.nn.Linear(a.width + (a.input_dims if i == self.skip else 0), a.width))
@@ -218,12 +163,6 @@ class DynamicModel:
     @property
     def arch(self) -> DeformArch:
         return self.net.arch
-
-
-def is_dynamic_model(path: PathLike) -> bool:
-    """True for a directory holding ``deformation.json`` (a dynamic model)."""
-    path = Path(path)
-    return path.is_dir() and (path / ARCH_FILE).is_file()
 
 
 def arch_json(arch: DeformArch, extra: dict[str, Any] | None = None) -> str:

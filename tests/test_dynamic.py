@@ -258,3 +258,180 @@ def test_reader_non_numeric_time(tmp_path: Path) -> None:
     (root / "transforms_train.json").write_text(json.dumps(data))
     with pytest.raises(CameraFormatError, match="finite number"):
         read_dnerf_frames(root / "transforms_train.json")
+
+
+# --------------------------------------------------------------------------- training
+def moving_capture(n: int = 60, frames: int = 8, size: tuple[int, int] = (32, 24)):
+    """A tiny scene whose Gaussians slide along x with time, seen by a few cameras."""
+    from gscodec_shac.train.dynamic import DynamicCapture
+
+    cloud = random_cloud(n, seed=8)
+    cams, times, images = [], [], []
+    for i in range(frames):
+        t = (i + 1) / frames  # no frame shows the canonical state exactly
+        angle = 2 * np.pi * i / frames
+        eye = (3.0 * np.cos(angle), 3.0 * np.sin(angle), 0.8)
+        cam = look_at(f"f{i}", eye, (0, 0, 0), (0, 0, 1), size[0], size[1], 30.0)
+        moved = GaussianCloud(means=cloud.means + np.float32([0.3 * t, 0.0, 0.0]), scales=cloud.scales,
+                              quats=cloud.quats, opacities=cloud.opacities, sh_dc=cloud.sh_dc, sh_rest=cloud.sh_rest)
+        cams.append(cam)
+        times.append(t)
+        images.append(np.clip(Renderer(moved).render(cam).image, 0, 1).astype(np.float32))
+    capture = DynamicCapture("moving", cams, times, images, cams, times, images, np.zeros(3), 3.3)
+    return capture, cloud
+
+
+def test_training_steps_reduce_the_loss(tmp_path: Path) -> None:
+    from gscodec_shac.train.dynamic import DynamicConfig, DynamicTrainer, evaluate_dynamic
+    from gscodec_shac.train.model import GaussianModel
+
+    capture, cloud = moving_capture()
+    model = GaussianModel({"means": cloud.means, "scales": cloud.scales, "quats": cloud.quats,
+                           "opacities": cloud.opacities, "sh_dc": cloud.sh_dc, "sh_rest": cloud.sh_rest}, 3)
+    config = DynamicConfig(iterations=60, warm_up=0, depth=2, width=32, densify_until=0, sh_interval=1000,
+                           lr_deform=3e-3, checkpoint_every=1000)
+    trainer = DynamicTrainer(capture, config, model=model)
+    trainer.active_degree = 3  # the canonical Gaussians come trained: render their full SH from the start
+    before = evaluate_dynamic(trainer.dynamic_model()[0], capture)["mean_psnr"]
+    losses = [trainer.step().loss for _ in range(60)]
+    after = evaluate_dynamic(trainer.dynamic_model()[0], capture)["mean_psnr"]
+    assert np.mean(losses[-10:]) < np.mean(losses[:10])
+    assert after > before + 1.0
+    # checkpoint + resume gives the same state
+    trainer.save_checkpoint(tmp_path)
+    again = DynamicTrainer.from_checkpoint(capture, tmp_path)
+    assert again.iteration == 60
+    for a, b in zip(again.net.parameters(), trainer.net.parameters()):
+        assert torch.equal(a, b)
+
+
+# --------------------------------------------------------------------------- .gsc round trip + commands
+def test_weight_shapes_match_the_network() -> None:
+    from gscodec_shac.deform_arch import weight_count, weight_shapes
+
+    for arch in (SMALL, DeformArch(depth=4, width=32), DeformArch(depth=2, width=8, time_net=False)):
+        net = DeformNetwork(arch)
+        assert [(k, tuple(v.shape)) for k, v in net.state_dict().items()] == weight_shapes(arch)
+        assert weight_count(arch) == net.n_params
+
+
+@pytest.fixture()
+def dynamic_dir(tmp_path: Path) -> Path:
+    from gscodec_shac.synthetic import make_synthetic_scene
+
+    cloud = make_synthetic_scene(800, seed=3, n_cameras=2, width=32, height=24).cloud
+    return save_dynamic_model(tmp_path / "model", DynamicModel(cloud, random_net(DeformArch(depth=4, width=32))))
+
+
+def test_gsc_round_trip_of_a_dynamic_model(tmp_path: Path, dynamic_dir: Path) -> None:
+    from gscodec_shac.codec import decode_file, encode_file
+    from gscodec_shac.codec.container import Bitstream
+    from gscodec_shac.codec.header import read_header
+
+    summary = encode_file(dynamic_dir, tmp_path / "d.gsc", "gsplat_png")
+    static = encode_file(dynamic_dir / "point_cloud.ply", tmp_path / "s.gsc", "gsplat_png")
+    stream = Bitstream.read(tmp_path / "d.gsc")
+    assert stream.version == (2, 0) and "deformation" in stream.features
+    view = read_header(stream)
+    assert view.deformation is not None and view.deformation.arch == DeformArch(depth=4, width=32)
+    net_bytes = view.chunk_bytes["deformation"]
+    assert 0 < net_bytes <= 2 * view.deformation.weights + 64
+    # the network counts in the rate: the rest is the static stream (its header deflated in format 2.0)
+    assert summary["bytes"] == (tmp_path / "d.gsc").stat().st_size
+    assert 0.9 * static["bytes"] < summary["bytes"] - net_bytes <= static["bytes"]
+    out = decode_file(tmp_path / "d.gsc", tmp_path / "decoded")
+    assert out["dynamic"] and is_dynamic_model(tmp_path / "decoded")
+    decode_file(tmp_path / "s.gsc", tmp_path / "static.ply")
+    back = load_dynamic_model(tmp_path / "decoded")
+    original = load_dynamic_model(dynamic_dir)
+    from gscodec_shac.io.ply import read_ply
+
+    static_cloud = read_ply(tmp_path / "static.ply")  # canonical Gaussians exactly as a static stream gives them
+    for name in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest"):
+        np.testing.assert_array_equal(getattr(back.cloud, name), getattr(static_cloud, name))
+    for key, value in original.net.weights().items():
+        got = back.net.weights()[key]
+        np.testing.assert_allclose(got, value, rtol=1e-3, atol=1e-4)  # float16
+        np.testing.assert_array_equal(got, value.astype(np.float16).astype(np.float32))
+
+
+def test_old_decoder_refuses_a_dynamic_stream(tmp_path: Path, dynamic_dir: Path, monkeypatch) -> None:
+    """A decoder whose container knows no 'deformation' feature (the release before this one) refuses it."""
+    from gscodec_shac.codec import container, encode_file
+    from gscodec_shac.errors import BitstreamError
+
+    encode_file(dynamic_dir, tmp_path / "d.gsc", "gsplat_png")
+    monkeypatch.delitem(container.FEATURES, "deformation")
+    with pytest.raises(BitstreamError, match="needs deformation.*update gscodec-shac"):
+        container.Bitstream.read(tmp_path / "d.gsc")
+
+
+def _corrupt(stream, edit) -> None:
+    from gscodec_shac.codec.container import Bitstream
+    from gscodec_shac.codec.header import read_header
+
+    copy = Bitstream.from_bytes(stream.to_bytes())
+    edit(copy)
+    copy = Bitstream.from_bytes(copy.to_bytes())
+    read_header(copy)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda s: s.header["deformation"]["arch"].update(width=4096), "too large"),
+    (lambda s: s.header["deformation"]["arch"].update(depth="8"), "positive integer"),
+    (lambda s: s.header["deformation"].update(dtype="float64"), "deformation.dtype"),
+    (lambda s: s.header.pop("deformation"), "come together"),
+    (lambda s: s.features.discard("deformation") or s.header.pop("deformation"), "belongs to no attribute"),
+    (lambda s: s.chunk("deformation").meta.update(raw_size=10), "raw_size"),
+    (lambda s: s.header["deformation"]["arch"].update(width=33), "raw_size"),
+])
+def test_header_validates_the_deformation_chunk(tmp_path: Path, dynamic_dir: Path, edit, message: str) -> None:
+    from gscodec_shac.codec import encode_file
+    from gscodec_shac.codec.container import Bitstream
+    from gscodec_shac.errors import BitstreamError
+
+    encode_file(dynamic_dir, tmp_path / "d.gsc", "gsplat_png")
+    stream = Bitstream.read(tmp_path / "d.gsc")
+    with pytest.raises(BitstreamError, match=message):
+        _corrupt(stream, edit)
+
+
+def test_commands_accept_a_model_directory(tmp_path: Path, dynamic_dir: Path, capsys) -> None:
+    from gscodec_shac.cli import main
+    from gscodec_shac.io.ply import write_ply
+
+    assert main(["info", str(dynamic_dir)]) == 0
+    assert "deformation       MLP 4x32" in capsys.readouterr().out
+    assert main(["encode", str(dynamic_dir), str(tmp_path / "d.gsc"), "-r", "gsplat_png", "-q"]) == 0
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "d.gsc"), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["deformation"]["weights"] == DeformNetwork(DeformArch(depth=4, width=32)).n_params
+    assert info["attributes"]["deformation"]["bytes"] == info["deformation"]["bytes"] > 0
+    assert main(["decode", str(tmp_path / "d.gsc"), str(tmp_path / "bad.ply")]) != 0
+    assert "decode it to a directory" in capsys.readouterr().err
+    assert main(["decode", str(tmp_path / "d.gsc"), str(tmp_path / "dec"), "-q"]) == 0
+    assert is_dynamic_model(tmp_path / "dec")
+    # render at time t == render of the deformed Gaussians as a static model
+    model = load_dynamic_model(tmp_path / "dec")
+    write_ply(tmp_path / "at.ply", model.at(0.25))
+    common = ["--orbit-views", "2", "--width", "40", "-q"]
+    assert main(["render", str(tmp_path / "dec"), str(tmp_path / "r_dyn"), "--time", "0.25", *common]) == 0
+    assert main(["render", str(tmp_path / "at.ply"), str(tmp_path / "r_static"), *common]) == 0
+    for name in sorted(p.name for p in (tmp_path / "r_static").glob("*.png")):
+        a = cv2.imread(str(tmp_path / "r_dyn" / name))
+        b = cv2.imread(str(tmp_path / "r_static" / name))
+        assert a is not None and np.abs(a.astype(int) - b.astype(int)).max() <= 1
+    assert main(["render", str(tmp_path / "dec"), str(tmp_path / "r_none"), *common]) != 0
+    assert "needs --time" in capsys.readouterr().err
+
+
+def test_render_uses_each_frames_time(tmp_path: Path, dynamic_dir: Path) -> None:
+    """Without --time, each D-NeRF frame is rendered at its own time."""
+    from gscodec_shac.cli import main
+
+    root = write_scene(tmp_path / "scene", frames=2, size=(16, 12))
+    assert main(["render", str(dynamic_dir), str(tmp_path / "r"), "--cameras",
+                 str(root / "transforms_test.json"), "-q"]) == 0
+    rows = json.loads((tmp_path / "r" / "metrics.json").read_text())["views"]
+    assert [r["time"] for r in rows] == [0.0, 1.0]
