@@ -33,10 +33,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("out_dir", metavar="OUT_DIR", help="output folder (created): the dynamic model")
     parser.add_argument("--iterations", type=int, default=40_000, help="training iterations (default 40000, the "
                         "reference); the schedule's intervals are scaled by iterations/40000")
-    parser.add_argument("--resolution-scale", type=float, default=0.5, metavar="F",
-                        help="scale the 800x800 images by F (default 0.5 = 400x400)")
-    parser.add_argument("--background", choices=("black", "white"), default="black",
-                        help="composite RGBA over black (default, the reference's D-NeRF command) or white")
+    parser.add_argument("--resolution-scale", type=float, metavar="F",
+                        help="scale the 800x800 images by F (default 0.5 = 400x400; --resume: the run's)")
+    parser.add_argument("--background", choices=("black", "white"),
+                        help="composite RGBA over black (default, the reference's D-NeRF command) or white "
+                        "(--resume: the run's)")
     parser.add_argument("--sh", choices=("full", "lst"), default="full", help="SH parameterisation (default full; "
                         "lst = training-integrated SHAC-LST)")
     parser.add_argument("--net-depth", type=int, default=8, help="deformation MLP depth (default 8, the reference)")
@@ -106,6 +107,19 @@ def run(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise GscodecError(f"{out}: cannot create the output folder ({exc.strerror or exc})") from None
+    if args.resume:  # the images the run was trained on
+        try:
+            previous = json.loads((out / "run.json").read_text())
+        except (OSError, ValueError):
+            previous = {}
+        for key in ("resolution_scale", "background"):
+            given, stored = getattr(args, key), previous.get(key)
+            if given is not None and stored is not None and given != stored:
+                raise GscodecError(f"--resume: the run was trained with --{key.replace('_', '-')} {stored}, "
+                                   f"not {given}")
+            setattr(args, key, given if given is not None else stored)
+    args.resolution_scale = 0.5 if args.resolution_scale is None else args.resolution_scale
+    args.background = args.background or "black"
     background = (1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0)
     capture = load_dnerf_capture(scene, resolution_scale=args.resolution_scale, background=background,
                                  progress=not args.quiet)
@@ -126,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
         write_atomic(out / "run.json", json.dumps({
             "scene": str(scene.resolve()), "config": config.to_dict(), "schedule": trainer.schedule,
             "train_frames": len(capture.train_cameras), "test_frames": len(capture.test_cameras), "size": size,
-            "background": args.background, "initial_gaussians": trainer.model.num_gaussians,
+            "background": args.background, "resolution_scale": args.resolution_scale, "initial_gaussians": trainer.model.num_gaussians,
             "network_params": trainer.net.n_params, "extent": capture.extent,
         }, indent=1))
         print(f"training {capture.name}: {len(capture.train_cameras)} train / {len(capture.test_cameras)} test "
