@@ -11,6 +11,9 @@ the mean of per-image PSNR and SSIM against the ground-truth images for:
 * ``coded_pca``: the ``.gsc`` stream at the same rate point with SHAC-PCA, ER 0.96;
 * ``coded_lst`` (when ``--lst-models`` names models trained with ``--sh lst``): their ``.gsc``.
 
+Each variant's renders are also compared with the uncompressed model's renders (``psnr_vs_uncompressed``):
+what coding loses, apart from how good the model is.
+
 Sizes: float32 MB of the models (Gaussians x 59 floats + network weights), the PCA model's
 float size (Gaussians x (14 + M) + side information + network) and the ``.gsc`` files' bytes
 (with the network's float16 chunk, as ``info`` shows it). Writes ``--json`` and a markdown table
@@ -81,11 +84,24 @@ def sh_bytes(gsc: Path) -> int:
     return sum(v["bytes"] for k, v in info["attributes"].items() if k in ("sh", "sh_state"))
 
 
-def measure(model, capture) -> dict[str, float]:
-    from gscodec_shac.train.dynamic import evaluate_dynamic
+def measure(model, capture, reference: list | None = None) -> dict[str, Any]:
+    """Mean per-frame PSNR/SSIM against the ground truth; with ``reference`` (the uncompressed model's
+    renders) also the mean PSNR against them (``psnr_vs_uncompressed``)."""
+    from gscodec_shac.metrics import psnr, ssim
+    from gscodec_shac.render import Renderer
 
-    result = evaluate_dynamic(model, capture)
-    return {"psnr": result["mean_psnr"], "ssim": result["mean_ssim"]}
+    renders, p, s, q = [], [], [], []
+    for index, (cam, t, truth) in enumerate(zip(capture.test_cameras, capture.test_times, capture.test_images)):
+        image = Renderer(model.at(t)).render(cam, background=capture.background).image
+        renders.append(image)
+        p.append(psnr(image, truth))
+        s.append(ssim(image, truth))
+        if reference is not None:
+            q.append(psnr(image, reference[index]))
+    out: dict[str, Any] = {"psnr": float(np.mean(p)), "ssim": float(np.mean(s)), "renders": renders}
+    if reference is not None:
+        out["psnr_vs_uncompressed"] = float(np.mean(q))
+    return out
 
 
 def run_scene(model_dir: Path, scene_dir: Path, work: Path, rate_point: str, lst_dir: Path | None) -> dict[str, Any]:
@@ -105,8 +121,10 @@ def run_scene(model_dir: Path, scene_dir: Path, work: Path, rate_point: str, lst
     }
     tic = time.perf_counter()
     row["uncompressed"] = {"mb": (n * 59 * 4 + 4 * model.net.n_params) / 1e6, **measure(model, capture)}
+    reference = row["uncompressed"].pop("renders")
     pca_model, pca_mb, m = float_pca(model, ER)
-    row["float_pca"] = {"mb": pca_mb, "components": m, **measure(pca_model, capture)}
+    row["float_pca"] = {"mb": pca_mb, "components": m, **measure(pca_model, capture, reference)}
+    row["float_pca"].pop("renders")
     work.mkdir(parents=True, exist_ok=True)
     for key, sh, params, source in (("coded_none", "none", {}, model_dir),
                                     ("coded_pca", "pca", {"energy_retention": ER}, model_dir),
@@ -118,9 +136,11 @@ def run_scene(model_dir: Path, scene_dir: Path, work: Path, rate_point: str, lst
         out = work / f"{scene_dir.name}_{key}"
         decode_file(gsc, out)
         row[key] = {"mb": summary["bytes"] / 1e6, "sh_bytes": sh_bytes(gsc), "encode_seconds": summary["seconds"],
-                    **measure(load_dynamic_model(out), capture)}
+                    **measure(load_dynamic_model(out), capture, None if key == "coded_lst" else reference)}
+        row[key].pop("renders")
     if lst_dir is not None:
         row["lst_uncompressed"] = measure(load_dynamic_model(lst_dir), capture)
+        row["lst_uncompressed"].pop("renders")
     row["eval_seconds"] = time.perf_counter() - tic
     return row
 
@@ -133,20 +153,24 @@ def markdown(rows: list[dict[str, Any]]) -> str:
 
     lines = [
         "| scene | res | iterations (planned) | Gaussians | s/it | uncompressed: PSNR / SSIM / MB | float SHAC-PCA ER 0.96 "
-        "(M) | .gsc no SH stage | .gsc SHAC-PCA ER 0.96 | .gsc SHAC-LST | SH part of .gsc: none -> PCA | "
-        "reference 400x400 PSNR |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "(M) | .gsc no SH stage | .gsc SHAC-PCA ER 0.96 | .gsc SHAC-LST | PSNR .gsc PCA - none (dB) | "
+        "PSNR vs uncompressed render: float PCA / .gsc none / .gsc PCA | "
+        "SH part of .gsc: none -> PCA | reference 400x400 PSNR |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        sh = "-"
+        sh = delta = fidelity = "-"
+        if "coded_none" in r and "coded_pca" in r:
+            fidelity = " / ".join(f"{r[k]['psnr_vs_uncompressed']:.2f}" for k in ("float_pca", "coded_none", "coded_pca"))
         if "coded_none" in r and "coded_pca" in r:
             a, b = r["coded_none"]["sh_bytes"], r["coded_pca"]["sh_bytes"]
             sh = f"{a / 1e3:.0f} kB -> {b / 1e3:.0f} kB ({100 * (1 - b / a):.0f}% smaller)"
+            delta = f"{r['coded_pca']['psnr'] - r['coded_none']['psnr']:+.3f}"
         lines.append(
             f"| {r['scene']} | {r['width']}x{r['height']} | {r['iterations']} ({r['iterations_planned']}) | "
             f"{r['num_gaussians']:,} | {r['seconds_per_iteration']:.2f} | {fmt(r['uncompressed'])} | "
             f"{fmt(r['float_pca'])} ({r['float_pca']['components']}) | {fmt(r.get('coded_none'), 3)} | "
-            f"{fmt(r.get('coded_pca'), 3)} | {fmt(r.get('coded_lst'), 3)} | {sh} | "
+            f"{fmt(r.get('coded_pca'), 3)} | {fmt(r.get('coded_lst'), 3)} | {delta} | {fidelity} | {sh} | "
             f"{REFERENCE_400.get(r['scene'], float('nan')):.2f} |")
     if rows:
         def mean(key: str, field: str) -> str:
@@ -160,12 +184,12 @@ def markdown(rows: list[dict[str, Any]]) -> str:
             f"{mean('float_pca', 'psnr')} / {mean('float_pca', 'ssim')} / {mean('float_pca', 'mb')} | "
             f"{mean('coded_none', 'psnr')} / {mean('coded_none', 'ssim')} / {mean('coded_none', 'mb')} | "
             f"{mean('coded_pca', 'psnr')} / {mean('coded_pca', 'ssim')} / {mean('coded_pca', 'mb')} | "
-            f"{mean('coded_lst', 'psnr')} | | {np.mean(list(REFERENCE_400.values())):.2f} |")
+            f"{mean('coded_lst', 'psnr')} | | | | {np.mean(list(REFERENCE_400.values())):.2f} |")
     lines.append(
         f"| *paper Table IV (GPU, 800x800, average of D-NeRF)* | | | | | {PAPER['uncompressed']['psnr']} / "
         f"{PAPER['uncompressed']['ssim']} / {PAPER['uncompressed']['mb']} | {PAPER['pca']['psnr']} / "
         f"{PAPER['pca']['ssim']} / {PAPER['pca']['mb']} | | | LST: {PAPER['lst']['psnr']} / {PAPER['lst']['ssim']} / "
-        f"{PAPER['lst']['mb']} | | |")
+        f"{PAPER['lst']['mb']} | {PAPER['pca']['psnr'] - PAPER['uncompressed']['psnr']:+.2f} (vs uncompressed) | | | |")
     return "\n".join(lines) + "\n"
 
 
