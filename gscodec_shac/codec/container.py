@@ -53,6 +53,8 @@ FORMAT_MINOR = 0
 #: What a version-2 stream may ask for in ``header["features"]``: name -> what it adds.
 FEATURES: dict[str, str] = {
     "positions_set": "positions coded as a Morton-sorted set; the grid order follows from them (codec/positions.py)",
+    "deformation": "a dynamic model: the canonical Gaussians plus a deformation network in chunk 'deformation' "
+                   "(codec/deformation.py); it decodes to a model directory",
 }
 _PREAMBLE = struct.Struct("<8sHHII")
 PREAMBLE_SIZE = _PREAMBLE.size  # 20

@@ -38,6 +38,7 @@ def encode_file(
     parameters (e.g. ``energy_retention=0.99``); ``preset`` sets the lossy
     codecs' speed preset (x265's ``preset`` option).
     """
+    from gscodec_shac.deform_arch import is_dynamic_model
     from gscodec_shac.io.models import read_model
 
     tic = time.perf_counter()
@@ -45,8 +46,18 @@ def encode_file(
     encoder = Encoder(rate_point, sh_stage=sh, sort=sort, seed=seed,
                       sh_params={k: v for k, v in stage_params.items() if v is not None},
                       codec_options={"preset": preset} if preset else None, progress=progress)
-    cloud, notes = read_model(in_ply)
+    dynamic = None
+    if is_dynamic_model(in_ply):  # canonical Gaussians as any model + the network chunk
+        from gscodec_shac.codec.deformation import add_deformation
+        from gscodec_shac.deform import load_dynamic_model
+
+        dynamic = load_dynamic_model(in_ply)
+        cloud, notes = dynamic.cloud, []
+    else:
+        cloud, notes = read_model(in_ply)
     stream = encoder.encode(cloud)
+    if dynamic is not None:
+        add_deformation(stream, dynamic.arch, dynamic.net.weights())
     with inputs_protected(in_ply):
         size = stream.write(out_gsc)
     return {
@@ -85,10 +96,13 @@ def encode_file_to_target(
 
     Nothing is written when the target cannot be reached (:class:`TargetUnreachableError`).
     """
+    from gscodec_shac.deform_arch import is_dynamic_model
     from gscodec_shac.io.cameras import load_cameras
     from gscodec_shac.io.models import read_model
 
     tic = time.perf_counter()
+    if is_dynamic_model(in_ply):
+        raise GscodecError(f"{in_ply}: a dynamic model is encoded at a rate point (--rate-point), not to a target")
     _check_output_dir(out_gsc, in_ply)
     cloud, notes = read_model(in_ply)
     target = target or make_target(cloud.num_gaussians, size=size, bpg=bpg, psnr=psnr)
@@ -119,8 +133,10 @@ def decode_file(in_gsc: str | os.PathLike, out_ply: str | os.PathLike, *, progre
     from gscodec_shac.io.models import check_model_extension, write_model
 
     tic = time.perf_counter()
-    _check_output_dir(out_ply, in_gsc)
     stream = Bitstream.read(in_gsc)
+    if "deformation" in stream.features:
+        return _decode_dynamic(stream, in_gsc, out_ply, tic, progress)
+    _check_output_dir(out_ply, in_gsc)
     check_model_extension(out_ply)
     cloud = Decoder(progress=progress).decode(stream)
     with inputs_protected(in_gsc):
@@ -133,6 +149,42 @@ def decode_file(in_gsc: str | os.PathLike, out_ply: str | os.PathLike, *, progre
         "bytes": Path(in_gsc).stat().st_size,
         "seconds": time.perf_counter() - tic,
         "notes": notes,
+    }
+
+
+def is_dynamic_stream(in_gsc: str | os.PathLike) -> bool:
+    """True when the ``.gsc`` file holds a dynamic model (it decodes to a directory)."""
+    return "deformation" in Bitstream.read(in_gsc).features
+
+
+def _decode_dynamic(stream: Bitstream, in_gsc: str | os.PathLike, out_dir: str | os.PathLike, tic: float,
+                    progress: bool) -> dict[str, Any]:
+    """A dynamic stream -> a model directory (canonical ``point_cloud.ply`` + the network)."""
+    from gscodec_shac.codec.header import read_deformation, read_header
+    from gscodec_shac.deform import DeformNetwork, DynamicModel, save_dynamic_model
+    from gscodec_shac.io.models import WRITE_EXTENSIONS
+
+    out = Path(out_dir)
+    if out.suffix.lower() in WRITE_EXTENSIONS or (out.exists() and not out.is_dir()):
+        raise OutputError(f"{out}: {in_gsc} holds a dynamic model (canonical Gaussians + deformation network); "
+                          "decode it to a directory (e.g. OUT_DIR/)")
+    view = read_header(stream)
+    cloud = Decoder(progress=progress).decode(stream)
+    weights = read_deformation(stream, view)
+    net = DeformNetwork(view.deformation.arch)
+    net.load_weights(weights, f"{in_gsc}: chunk 'deformation'")
+    with inputs_protected(in_gsc):
+        save_dynamic_model(out, DynamicModel(cloud, net), {"source": f"gscodec-shac decode {Path(in_gsc).name}"})
+    return {
+        "input": str(in_gsc),
+        "output": str(out),
+        "num_gaussians": cloud.num_gaussians,
+        "sh_degree": cloud.sh_degree,
+        "bytes": Path(in_gsc).stat().st_size,
+        "deformation_bytes": view.chunk_bytes.get("deformation", 0),
+        "seconds": time.perf_counter() - tic,
+        "notes": [],
+        "dynamic": True,
     }
 
 

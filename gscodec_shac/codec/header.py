@@ -15,6 +15,9 @@ got -1``). What is checked, before anything is decoded or allocated:
   exactly once, codec indices inside the codec table, no unlisted chunk;
 * zlib chunks (``grid_mask``, ``sh_state``): the declared inflated size against its
   limit and against what deflate can produce from the stored bytes (at most 1032:1);
+* dynamic models (feature ``deformation``): the ``deformation`` header entry (architecture
+  within :mod:`gscodec_shac.deform_arch`'s bounds, dtype float16) comes with the feature and
+  the zlib chunk ``deformation``, whose inflated size must be 2 bytes per network weight;
 * the peak memory a decode needs (:meth:`StreamHeader.peak_memory`) is the decoder's to
   compare with :func:`gscodec_shac.limits.memory_budget` before the first allocation.
 
@@ -36,6 +39,7 @@ from gscodec_shac.codec.attributes import ATTRIBUTES, SH_FEATURES_TRANSFORM
 from gscodec_shac.codec.container import Bitstream, Chunk
 from gscodec_shac.codec.grid.base import CODECS
 from gscodec_shac.codec.quantize import Quantizer
+from gscodec_shac.deform_arch import DeformArch, weight_count
 from gscodec_shac.errors import BitstreamError, GscodecError
 from gscodec_shac.limits import MAX_GAUSSIANS
 from gscodec_shac.shac.base import STAGES, ShStage, StageState, stage_from_state
@@ -111,6 +115,15 @@ class CodecEntry:
 
 
 @dataclass(frozen=True)
+class DeformationEntry:
+    """The deformation network of a dynamic model: its architecture and stored weight type."""
+
+    arch: DeformArch
+    dtype: str
+    weights: int
+
+
+@dataclass(frozen=True)
 class StreamHeader:
     """The checked view of a ``.gsc`` header (see the module docstring)."""
 
@@ -138,6 +151,8 @@ class StreamHeader:
     rate_point: str | None = None
     #: The rate-control target the stream was made for (``{"kind", "value"}``), if any.
     target: dict[str, Any] | None = None
+    #: The deformation network of a dynamic model (None: a static model).
+    deformation: DeformationEntry | None = None
 
     @property
     def cells(self) -> int:
@@ -170,6 +185,8 @@ class StreamHeader:
         values = n * self.channels * (2 + 4 + 8)
         sh = n * (ac + 3) * (8 + 8 + 4) if self.sh else 0
         state = 6 * sum(self.zlib_sizes.values())
+        if self.deformation is not None:  # float16 -> float32 weights and the torch network
+            state += 10 * self.deformation.weights
         position_set = 48 * n if any(e.coding == "set" for e in self.attributes.values()) else 0
         return planes + codec + values + sh + state + position_set + 2 * self.decoded_bytes()
 
@@ -194,7 +211,8 @@ def read_header(stream: Bitstream) -> StreamHeader:
         raise HEADER.error("grid.padding", "set-coded positions, the zorder padding and the positions_set "
                            "feature come together")
     chunks = _chunk_plans(stream, attributes, shape, len(codecs))
-    zlib_sizes = _zlib_chunks(stream, attributes, sh, padding, shape[0] * shape[1])
+    deformation = _deformation(header.get("deformation"), "deformation" in stream.features)
+    zlib_sizes = _zlib_chunks(stream, attributes, sh, padding, shape[0] * shape[1], deformation)
 
     prune = HEADER.mapping(header.get("prune"), "prune")
     policy = grid.get("policy")
@@ -227,7 +245,22 @@ def read_header(stream: Bitstream) -> StreamHeader:
         sort_method=_optional_string(sort.get("method"), "grid.sort.method"),
         rate_point=_optional_string(rate_point.get("name"), "rate_point.name"),
         target=target,
+        deformation=deformation,
     )
+
+
+def read_deformation(stream: Bitstream, view: StreamHeader) -> dict[str, np.ndarray]:
+    """The float32 weights of a dynamic stream's network (sizes checked by :func:`read_header`)."""
+    from gscodec_shac.codec.deformation import decode_weights
+
+    if view.deformation is None:
+        raise BitstreamError("corrupt .gsc file: the stream has no deformation network")
+    raw = inflate(stream.chunk("deformation"), view.zlib_sizes["deformation"])
+    weights = decode_weights(raw, view.deformation.arch)
+    bad = [name for name, value in weights.items() if not np.all(np.isfinite(value))]
+    if bad:
+        raise BitstreamError(f"corrupt .gsc file: chunk 'deformation': weight {bad[0]} holds NaN or infinity")
+    return weights
 
 
 def read_stage(stream: Bitstream, view: StreamHeader) -> ShStage:
@@ -424,14 +457,33 @@ def _chunk_plan(meta: dict, name: str, attribute: AttributeEntry, shape: tuple[i
     return ChunkPlan(name, attribute.name, start, stop, part, bits, codec, qp)
 
 
+def _deformation(value: Any, required: bool) -> DeformationEntry | None:
+    """The ``deformation`` entry: present exactly when the stream needs the ``deformation`` feature."""
+    if (value is not None) != required:
+        raise HEADER.error("deformation", "the deformation entry and the 'deformation' feature come together")
+    if value is None:
+        return None
+    entry = HEADER.mapping(value, "deformation", optional=False)
+    dtype = HEADER.choice(entry.get("dtype"), ("float16",), "deformation.dtype")
+    try:
+        arch = DeformArch.from_dict(entry.get("arch"))
+    except GscodecError as exc:
+        raise HEADER.error("deformation.arch", str(exc)) from None
+    except TypeError as exc:
+        raise HEADER.error("deformation.arch", f"malformed ({exc})") from None
+    return DeformationEntry(arch, dtype, weight_count(arch))
+
+
 def _zlib_chunks(stream: Bitstream, attributes: dict[str, AttributeEntry], sh: ShEntry | None, padding: str,
-                 cells: int) -> dict[str, int]:
+                 cells: int, deformation: DeformationEntry | None = None) -> dict[str, int]:
     """``{name: raw size}`` of the zlib chunks; checks no chunk is unaccounted for."""
     expected = {}
     if padding == "mask":
         expected["grid_mask"] = (cells + 7) // 8
     if sh is not None:
         expected["sh_state"] = None
+    if deformation is not None:
+        expected["deformation"] = 2 * deformation.weights
     listed = {name for entry in attributes.values() for name in entry.chunks}
     named = {c.name for c in stream.chunks}
     stray = sorted(named - listed - set(expected))
@@ -486,6 +538,9 @@ def describe(view: StreamHeader) -> dict[str, Any]:
         "color": view.color,
         "rate_point": view.rate_point,
         "target": view.target,
+        "deformation": ({"arch": view.deformation.arch.to_dict(), "weights": view.deformation.weights,
+                         "dtype": view.deformation.dtype, "bytes": view.chunk_bytes.get("deformation", 0)}
+                        if view.deformation else None),
         "bits_per_gaussian": 8.0 * view.total_bytes / n,
         "decoded_bytes": view.decoded_bytes(),
         "attributes": {name: {"bytes": size, "bits_per_gaussian": 8.0 * size / n} for name, size in sizes.items()},

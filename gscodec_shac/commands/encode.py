@@ -37,7 +37,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                   "gscodec-shac encode scene.ply scene.gsc --target-size 2.5MB"],
     )
     parser.add_argument("input", metavar="IN", help="input model: Inria .ply, .compressed.ply, .spz, .splat, .sog, "
-                        "SOG meta.json (or its folder), gsplat checkpoint .pt")
+                        "SOG meta.json (or its folder), gsplat checkpoint .pt, or a dynamic model directory "
+                        "(its canonical Gaussians are coded as any model, the deformation network as one float16 "
+                        "chunk)")
     parser.add_argument("output", metavar="OUT.gsc", help="output .gsc (written atomically)")
     parser.add_argument("--rate-point", "-r", metavar="SET:POINT",
                         help="e.g. paper_table3:rp2, mpeg_ctc_video:rp01, gsplat_png, my.yaml:fast (default: "

@@ -19,7 +19,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         examples=["gscodec-shac info scene.gsc", "gscodec-shac info scene.ply --json"],
     )
     parser.add_argument("file", metavar="FILE", help="a .gsc file or a model: Inria .ply, .compressed.ply, .spz, "
-                        ".splat, .sog, SOG meta.json (or its folder), gsplat checkpoint .pt")
+                        ".splat, .sog, SOG meta.json (or its folder), gsplat checkpoint .pt, a dynamic model "
+                        "directory (deformation.json)")
     add_json(parser, "the description")
     parser.set_defaults(func=run)
 
@@ -36,12 +37,31 @@ def run(args: argparse.Namespace) -> int:
 
     from gscodec_shac.io.models import read_model, report_notes
     from gscodec_shac.codec.summary import describe_cloud, format_cloud_summary
+    from gscodec_shac.deform_arch import is_dynamic_model
 
+    if is_dynamic_model(args.file):
+        from gscodec_shac.deform import load_dynamic_model
+
+        model = load_dynamic_model(args.file)
+        summary = describe_cloud(model.cloud, args.file)
+        summary["deformation"] = {"arch": model.arch.to_dict(), "weights": model.net.n_params,
+                                  "float32_bytes": 4 * model.net.n_params}
+        text = format_cloud_summary(summary) + "\n" + _deformation_line(summary["deformation"])
+        print(json.dumps(summary, indent=2) if args.json else text)
+        return 0
     cloud, notes = read_model(args.file)
     report_notes(notes)
     summary = describe_cloud(cloud, args.file)
     print(json.dumps(summary, indent=2) if args.json else format_cloud_summary(summary))
     return 0
+
+
+def _deformation_line(info: dict[str, Any]) -> str:
+    arch = info["arch"]
+    stored = f"{info['bytes']:,} bytes ({info.get('dtype', 'float16')})" if "bytes" in info else \
+        f"{info['float32_bytes']:,} bytes as float32"
+    return (f"deformation       MLP {arch['depth']}x{arch['width']}"
+            f"{' + time net' if arch['time_net'] else ''}, {info['weights']:,} weights, {stored}")
 
 
 def describe_gsc(stream: Any, path: str) -> dict[str, Any]:
@@ -74,6 +94,8 @@ def format_gsc_summary(summary: dict[str, Any]) -> str:
     for name, info in summary["attributes"].items():
         share = 100.0 * info["bytes"] / summary["bytes"]
         lines.append(f"  {name:<16} {info['bytes']:>12,} {share:>6.1f}% {info['bits_per_gaussian']:>13.3f}")
+    if summary.get("deformation"):
+        lines.append(_deformation_line(summary["deformation"]))
     lines.append("chunk                     bytes  bits  QP    codec")
     for chunk in summary["chunks"]:
         qp = "-" if chunk["qp"] is None else str(chunk["qp"])

@@ -34,10 +34,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "and write 8-bit PNGs (clipped to [0, 1]) into OUT_DIR; with ground-truth images, PSNR/SSIM "
         "(and LPIPS with weights) go to OUT_DIR/metrics.json.",
         examples=["gscodec-shac render scene.ply renders/ --cameras cameras.json --images images/ --split test",
-                  "gscodec-shac render scene.ply orbit/ --orbit-views 24 --up 0,-1,0"],
+                  "gscodec-shac render scene.ply orbit/ --orbit-views 24 --up 0,-1,0",
+                  "gscodec-shac render jumpingjacks_model/ frames/ --cameras dnerf/jumpingjacks/transforms_test.json"],
     )
     parser.add_argument("scene", metavar="SCENE", help="a model: Inria .ply, .compressed.ply, .spz, .splat, .sog, "
-                        "SOG meta.json, gsplat .pt")
+                        "SOG meta.json, gsplat .pt, or a dynamic model directory (see --time)")
     add_output(parser, "OUT_DIR", "output directory for the PNGs and metrics.json (created)")
     parser.add_argument("--cameras", help="cameras.json, transforms*.json, poses_bounds.npy, a COLMAP model "
                         "or a capture folder; default: an orbit around the scene")
@@ -59,6 +60,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--orbit-views", type=int, default=24, metavar="N",
                         help="number of orbit views without --cameras (default 24)")
     add_up(parser, "the orbit without --cameras")
+    parser.add_argument("--time", type=float, metavar="T", help="dynamic model: render every view at time T "
+                        "(default: each frame's own 'time' from a D-NeRF transforms file)")
     parser.add_argument("--lpips-weights", metavar="FILE", help="LPIPS-VGG weights file (else $GSCODEC_LPIPS_WEIGHTS; "
                         "without either LPIPS is reported as unavailable)")
     add_quiet(parser)
@@ -91,6 +94,29 @@ def _select(cameras: list, args: argparse.Namespace) -> list:
     return test if args.split == "test" else train
 
 
+def _frame_times(cameras: list, args: argparse.Namespace) -> list[float]:
+    """The instant each camera of a dynamic model is rendered at: ``--time``, else its frame's ``time``."""
+    import math
+
+    from gscodec_shac.errors import GscodecError
+
+    if args.time is not None:
+        if not math.isfinite(args.time):
+            raise GscodecError(f"--time must be a finite number, got {args.time}")
+        return [float(args.time)] * len(cameras)
+    if not args.cameras or not str(args.cameras).endswith(".json"):
+        raise GscodecError("a dynamic model needs --time, or --cameras transforms_*.json whose frames have a 'time'")
+    from gscodec_shac.io.dnerf import read_dnerf_cameras
+
+    by_name: dict[str, float] = {}
+    for frame in read_dnerf_cameras(args.cameras):
+        by_name.setdefault(frame.camera.name, frame.time)
+    missing = [c.name for c in cameras if c.name not in by_name]
+    if missing:
+        raise GscodecError(f"{args.cameras}: no 'time' for camera {missing[0]!r}; pass --time")
+    return [by_name[c.name] for c in cameras]
+
+
 def run(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm import tqdm
@@ -107,14 +133,30 @@ def run(args: argparse.Namespace) -> int:
     if not all(0.0 <= v <= 1.0 for v in background):
         raise GscodecError(f"--background values must lie in [0, 1], got {args.background!r}")
     protect_inputs(args.scene, args.cameras)
-    cloud, notes = read_model(args.scene)
+    from gscodec_shac.deform_arch import is_dynamic_model
+
+    dynamic = None
+    if is_dynamic_model(args.scene):
+        from gscodec_shac.deform import load_dynamic_model
+
+        dynamic = load_dynamic_model(args.scene)
+        cloud, notes = dynamic.cloud, []
+    elif args.time is not None:
+        raise GscodecError("--time applies to a dynamic model (a directory with deformation.json)")
+    else:
+        cloud, notes = read_model(args.scene)
     report_notes(notes)
     if args.cameras:
         cameras = resize_cameras(_select(load_cameras(args.cameras, args.images_dir), args), args.scale, args.width)
     else:
         if args.images_dir:
             raise GscodecError("--images needs --cameras (orbit views have no ground truth)")
-        cameras = _select(_orbit(cloud, args.orbit_views, comma_floats(args.up, "--up"), args.width, args.scale), args)
+        if dynamic is not None and args.time is None:
+            raise GscodecError("a dynamic model needs --time, or --cameras transforms_*.json whose frames have a "
+                               "'time'")
+        around = dynamic.at(args.time) if dynamic is not None else cloud  # the orbit of what is shown
+        cameras = _select(_orbit(around, args.orbit_views, comma_floats(args.up, "--up"), args.width, args.scale),
+                          args)
     if not cameras:
         raise GscodecError("no cameras left to render after the selection")
     out = Path(args.out)
@@ -129,13 +171,20 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise GscodecError(f"{out}: cannot create the output directory ({exc.strerror or exc})") from None
 
+    times = _frame_times(cameras, args) if dynamic is not None else [None] * len(cameras)
     lpips_model, lpips_reason = load_lpips(args.lpips_weights) if with_truth else (None, None)
-    renderer = Renderer(cloud)
+    renderers: dict = {}
     rows = []
     for index, camera in enumerate(tqdm(cameras, desc="render", unit="view", disable=args.quiet)):
-        image = renderer.render(camera, background=background).image
+        t = times[index]
+        if t not in renderers:  # one renderer per instant (a static model: one)
+            renderers.clear()
+            renderers[t] = Renderer(cloud if t is None else dynamic.at(t))
+        image = renderers[t].render(camera, background=background).image
         path = save_png(out / names[index], image)
         row = {"name": camera.name, "png": path.name, "width": camera.width, "height": camera.height}
+        if t is not None:
+            row["time"] = t
         if camera.image_path is not None:
             truth = load_image(camera.image_path, background=background, size=(camera.width, camera.height))
             row.update(image_metrics(image, truth, lpips_model=lpips_model, lpips_reason=lpips_reason))

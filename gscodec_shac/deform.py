@@ -1,0 +1,229 @@
+"""Dynamic (deformable) 3DGS models: canonical Gaussians + a deformation network.
+
+The model of Deformable 3D Gaussians (Yang et al., CVPR 2024), as SHAC's Table IV codes it:
+one set of canonical Gaussians (ordinary SH-3 3DGS) and one MLP, queried per Gaussian and
+frame, that maps the canonical centre ``x`` and the frame time ``t`` to offsets
+``(dx, dq, ds)``. At time ``t`` a Gaussian is rendered with
+
+* centre ``x + dx``;
+* rotation ``q / |q| + dq`` (the rasteriser normalises it again);
+* scale ``exp(s) + ds`` (the offset is added to the activated scale, as the reference;
+  the rasteriser takes log-scales, so we pass ``log |exp(s) + ds|``: the covariance depends
+  on the scale's square only, so this is the same Gaussian).
+
+Network (:class:`DeformNetwork`, sizes in :class:`DeformArch`): NeRF positional encoding
+of ``x`` (``L_x = 10`` octaves, input included: 63 values) and of ``t`` (``L_t = 6``: 13
+values); for D-NeRF the time code first passes a small time net (13 -> 256 -> 30, ReLU).
+``depth`` fully connected ReLU layers of ``width`` with the encoded input concatenated again
+after layer ``depth // 2`` (0-based; none when that is the last layer), then three linear heads (3, 4, 3). The reference is ``depth=8,
+width=256`` (about 0.52 M weights); ``depth=4, width=128`` is our CPU option. The heads start
+at zero (the reference uses PyTorch's default initialisation), so deformation starts as the
+identity when it is switched on after the static warm-up.
+
+A dynamic model on disk is a directory (:func:`save_dynamic_model`): ``point_cloud.ply``
+(canonical Gaussians, ordinary Inria PLY), ``deformation.npz`` (the weights by name) and
+``deformation.json`` (``{"format": "gscodec-shac-deformation", "version": 1, "arch": ...}``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import gscodec_shac.render  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads OpenMP)
+import torch  # noqa: E402
+
+from gscodec_shac.deform_arch import ARCH_FILE, MODEL_PLY, WEIGHTS_FILE, DeformArch, is_dynamic_model
+from gscodec_shac.errors import ModelFormatError
+from gscodec_shac.gaussians import GaussianCloud
+
+PathLike = str | os.PathLike
+ARCH_FORMAT = "gscodec-shac-deformation"
+ARCH_VERSION = 1
+__all__ = ["DeformArch", "DeformNetwork", "DynamicModel", "deform_tensors", "deformed_cloud", "load_dynamic_model",
+           "save_dynamic_model", "is_dynamic_model", "positional_encoding"]
+def positional_encoding(x: torch.Tensor, octaves: int) -> torch.Tensor:
+    """``[x, sin(2^k x), cos(2^k x)]`` for ``k = 0 .. octaves-1`` (NeRF's encoding), on the last axis."""
+    if octaves == 0:
+        return x
+    freqs = 2.0 ** torch.arange(octaves, dtype=x.dtype)
+    scaled = (x[..., None, :] * freqs[:, None]).reshape(*x.shape[:-1], -1)
+    return torch.cat([x, torch.sin(scaled), torch.cos(scaled)], dim=-1)
+
+
+class DeformNetwork(torch.nn.Module):
+    """The deformation MLP (see the module docstring); ``forward(x (N, 3), t float) -> (dx, dq, ds)``."""
+
+    def __init__(self, arch: DeformArch = DeformArch()) -> None:
+        super().__init__()
+        self.arch = arch.validate()
+        a = arch
+        if a.time_net:
+            self.time_layers = torch.nn.ModuleList([torch.nn.Linear(a.t_dims, a.time_width),
+                                                    torch.nn.Linear(a.time_width, a.time_out)])
+        else:
+            self.time_layers = torch.nn.ModuleList()
+        self.skip = a.depth // 2 if a.depth // 2 < a.depth - 1 else -1  # no skip after the last layer
+        layers = [torch.nn.Linear(a.input_dims, a.width)]
+        for i in range(a.depth - 1):
+            layers.append(torch.nn.Linear(a.width + (a.input_dims if i == self.skip else 0), a.width))
+        self.layers = torch.nn.ModuleList(layers)
+        self.head_xyz = torch.nn.Linear(a.width, 3)
+        self.head_rot = torch.nn.Linear(a.width, 4)
+        self.head_scale = torch.nn.Linear(a.width, 3)
+        with torch.no_grad():
+            for head in (self.head_xyz, self.head_rot, self.head_scale):
+                head.weight.zero_()
+                head.bias.zero_()
+
+    @property
+    def n_params(self) -> int:
+        return int(sum(p.numel() for p in self.parameters()))
+
+    def time_code(self, t: float, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """(1, C) time feature: encoded ``t``, through the time net for D-NeRF."""
+        code = positional_encoding(torch.tensor([[float(t)]], dtype=dtype), self.arch.t_freqs)
+        if self.arch.time_net:
+            code = self.time_layers[1](torch.relu(self.time_layers[0](code)))
+        return code
+
+    def forward(self, x: torch.Tensor, t: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        code = self.time_code(t, x.dtype)
+        inputs = torch.cat([positional_encoding(x, self.arch.xyz_freqs), code.expand(x.shape[0], -1)], dim=1)
+        h = inputs
+        for i, layer in enumerate(self.layers):
+            h = torch.relu(layer(h))
+            if i == self.skip:
+                h = torch.cat([inputs, h], dim=1)
+        return self.head_xyz(h), self.head_rot(h), self.head_scale(h)
+
+    # ------------------------------------------------------------------ weights as numpy
+    def weights(self) -> dict[str, np.ndarray]:
+        """float32 copies of every weight by its parameter name (the order of ``state_dict``)."""
+        return {k: v.detach().cpu().numpy().astype(np.float32).copy() for k, v in self.state_dict().items()}
+
+    def load_weights(self, weights: dict[str, np.ndarray], where: str = "deformation weights") -> None:
+        expected = self.state_dict()
+        if set(weights) != set(expected):
+            missing = sorted(set(expected) - set(weights))
+            extra = sorted(set(weights) - set(expected))
+            raise ModelFormatError(f"{where}: weights do not match the architecture (missing {missing[:4]}, "
+                                   f"unexpected {extra[:4]})")
+        state = {}
+        for key, ref in expected.items():
+            value = np.asarray(weights[key])
+            if tuple(value.shape) != tuple(ref.shape):
+                raise ModelFormatError(f"{where}: {key} has shape {value.shape}, the architecture needs "
+                                       f"{tuple(ref.shape)}")
+            if not np.all(np.isfinite(value)):
+                raise ModelFormatError(f"{where}: {key} holds NaN or infinite values")
+            state[key] = torch.from_numpy(np.ascontiguousarray(value, dtype=np.float32))
+        self.load_state_dict(state)
+
+
+def deform_tensors(
+    net: DeformNetwork, means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor, t: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Deformed ``(means, log-scales, quats)`` at time ``t`` (differentiable; see the module docstring).
+
+    The network sees the canonical centres with the gradient stopped, as the reference."""
+    dx, dq, ds = net(means.detach(), t)
+    qn = quats / torch.linalg.norm(quats, dim=1, keepdim=True).clamp_min(1e-12)
+    scale = torch.exp(log_scales) + ds
+    return means + dx, torch.log(scale.abs().clamp_min(1e-12)), qn + dq
+
+
+def deformed_cloud(cloud: GaussianCloud, net: DeformNetwork, t: float) -> GaussianCloud:
+    """The static :class:`GaussianCloud` the dynamic model shows at time ``t``."""
+    with torch.no_grad():
+        m, s, q = deform_tensors(
+            net, torch.from_numpy(np.ascontiguousarray(cloud.means, dtype=np.float32)),
+            torch.from_numpy(np.ascontiguousarray(cloud.scales, dtype=np.float32)),
+            torch.from_numpy(np.ascontiguousarray(cloud.quats, dtype=np.float32)), t,
+        )
+    return GaussianCloud(means=m.numpy(), scales=s.numpy(), quats=q.numpy(), opacities=cloud.opacities,
+                         sh_dc=cloud.sh_dc, sh_rest=cloud.sh_rest)
+
+
+@dataclass
+class DynamicModel:
+    """Canonical Gaussians + deformation network."""
+
+    cloud: GaussianCloud
+    net: DeformNetwork
+
+    def at(self, t: float) -> GaussianCloud:
+        return deformed_cloud(self.cloud, self.net, t)
+
+    @property
+    def arch(self) -> DeformArch:
+        return self.net.arch
+
+
+def arch_json(arch: DeformArch, extra: dict[str, Any] | None = None) -> str:
+    data = {"format": ARCH_FORMAT, "version": ARCH_VERSION, "arch": arch.to_dict(), "weights": WEIGHTS_FILE,
+            "canonical": MODEL_PLY}
+    data.update(extra or {})
+    return json.dumps(data, indent=1)
+
+
+def read_arch(path: PathLike) -> DeformArch:
+    """The architecture recorded in ``deformation.json``."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ModelFormatError(f"{path}: not a readable deformation.json ({exc})") from None
+    if not isinstance(data, dict) or data.get("format") != ARCH_FORMAT:
+        raise ModelFormatError(f"{path}: not a gscodec-shac deformation description (format {ARCH_FORMAT!r})")
+    if data.get("version") != ARCH_VERSION:
+        raise ModelFormatError(f"{path}: deformation description version {data.get('version')!r} is not supported")
+    return DeformArch.from_dict(data.get("arch"))
+
+
+def load_weights_npz(path: PathLike) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: np.asarray(data[k]) for k in data.files}
+    except (OSError, ValueError) as exc:
+        raise ModelFormatError(f"{path}: not a readable weights file ({exc})") from None
+
+
+def load_dynamic_model(path: PathLike) -> DynamicModel:
+    """Read a dynamic model directory (see the module docstring)."""
+    from gscodec_shac.io.ply import read_ply
+
+    path = Path(path)
+    if not is_dynamic_model(path):
+        raise ModelFormatError(f"{path}: not a dynamic model directory (no {ARCH_FILE})")
+    arch = read_arch(path / ARCH_FILE)
+    net = DeformNetwork(arch)
+    if not (path / WEIGHTS_FILE).is_file():
+        raise ModelFormatError(f"{path}: the dynamic model has no {WEIGHTS_FILE}")
+    net.load_weights(load_weights_npz(path / WEIGHTS_FILE), str(path / WEIGHTS_FILE))
+    if not (path / MODEL_PLY).is_file():
+        raise ModelFormatError(f"{path}: the dynamic model has no {MODEL_PLY}")
+    return DynamicModel(read_ply(path / MODEL_PLY), net)
+
+
+def save_dynamic_model(path: PathLike, model: DynamicModel, extra: dict[str, Any] | None = None) -> Path:
+    """Write ``point_cloud.ply``, ``deformation.npz`` and ``deformation.json`` into ``path`` (atomically)."""
+    from gscodec_shac.atomic import write_atomic, write_npz
+    from gscodec_shac.io.ply import write_ply
+
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    write_ply(path / MODEL_PLY, model.cloud)
+    write_npz(path / WEIGHTS_FILE, model.net.weights())
+    write_atomic(path / ARCH_FILE, arch_json(model.arch, extra))
+    return path
+
+
+def weights_size_bytes(net: DeformNetwork, bytes_per_weight: int = 4) -> int:
+    return net.n_params * bytes_per_weight
+
