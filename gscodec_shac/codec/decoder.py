@@ -70,7 +70,6 @@ class Decoder:
         mask = None
         if view.padding == "mask":
             mask = unpack_mask(inflate(stream.chunk("grid_mask"), view.zlib_sizes["grid_mask"]), n, view.cells)
-        cells = occupied_cells(view.padding, shape, n, mask)
         stage = read_stage(stream, view) if view.sh is not None else None
 
         tasks = [_ChunkTask(plan, stream.chunk(plan.name), codecs[plan.codec], shape) for plan in view.chunks]
@@ -82,6 +81,9 @@ class Decoder:
                           disable=not self.progress, leave=False):
                 pass
             planes = [futures[i].result() for i in range(len(tasks))]
+        # After the planes: a header that declares a huge grid over small pictures fails in the
+        # codec's picture-size check before the grid's z-order is computed (seconds at 25M cells).
+        cells = occupied_cells(view.padding, shape, n, mask)
         values = {
             name: _assemble(entry, [(t, p) for t, p in zip(tasks, planes) if t.plan.attribute == name], shape, cells)
             for name, entry in view.attributes.items() if entry.coding == "planes"
