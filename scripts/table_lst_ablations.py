@@ -1,0 +1,198 @@
+"""Trained SHAC-LST ablations at small scale: paper Tables VII, VIII, IX and Fig. 12-13 (docs/paper.md).
+
+Every variant is *trained* from scratch with ``gscodec-shac train --sh lst`` (S and T learnt
+together with the geometry, as the paper does; not a post-hoc fit), all with the same capture,
+resolution, Gaussian budget (MCMC), iterations and seed, and evaluated on the held-out views
+(every 8th view in name order, never trained on) against the photos. One variant differs from
+the paper's model (lowest-degree subset, block-diagonal matrix, joint RGB, zero-initialised T,
+lambda_t = 5e-3) in one setting only:
+
+* Table VII: ``--lst-subset highest``;
+* Table VIII: ``--lst-operator vector | linear | mlp``;
+* Table IX: ``--lst-structure dense``, ``--lst-rgb separate``, ``--lst-init identity``;
+* Fig. 12 (subset dimension): ``--sh-degree 2`` (L = 2, d = 15); L = 4 is beyond the trainer (SH 0-3);
+* Fig. 13 (scale regulariser): ``--lambda-t 0``.
+
+The paper's model is also trained with a second seed (the seed-to-seed spread is the yardstick
+for every difference), and a full-SH Train-L3-D45 model with the same schedule is the anchor.
+Runs are sequential, one thread each, and resumable: a run whose ``metrics.json`` says complete
+is read, not retrained (``--retrain`` forces). Results: ``lst_ablations.json`` and
+``lst_ablations.md`` in OUT_DIR.
+
+    python scripts/table_lst_ablations.py ../outputs/lst_ablations \\
+        --capture ../shared/data/scenes/snowmiku_capture --images images_8 --resolution-scale 0.5 \\
+        --iterations 800 --max-gaussians 20000
+    python scripts/table_lst_ablations.py /tmp/lst_quick --quick     # a smoke run (minutes)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+#: name -> (extra ``train`` flags, tables/figures it belongs to, label)
+VARIANTS: dict[str, tuple[list[str], tuple[str, ...], str]] = {
+    "paper": ([], ("VII", "VIII", "IX", "Fig12", "Fig13"), "paper's model (lowest, matrix, block, joint, zero, lambda_t 5e-3)"),
+    "paper_seed1": (["--seed", "1"], ("seed",), "paper's model, seed 1"),
+    "full_l3": (["--sh", "full"], ("anchor",), "Train-L3-D45 (full SH, anchor)"),
+    "highest": (["--lst-subset", "highest"], ("VII",), "highest degree l per order m"),
+    "vector": (["--lst-operator", "vector"], ("VIII",), "vector operator"),
+    "linear": (["--lst-operator", "linear"], ("VIII",), "linear operator (with bias)"),
+    "mlp": (["--lst-operator", "mlp"], ("VIII",), "MLP operator (2 hidden layers)"),
+    "dense": (["--lst-structure", "dense"], ("IX",), "w/o block-diagonal structure (dense T)"),
+    "separate": (["--lst-rgb", "separate"], ("IX",), "w/o RGB joint processing"),
+    "identity": (["--lst-init", "identity"], ("IX",), "w/o zero initialisation (identity)"),
+    "lambda0": (["--lambda-t", "0"], ("Fig13",), "w/o scale regularisation (lambda_t = 0)"),
+    "l2": (["--sh-degree", "2"], ("Fig12",), "L = 2 (d = 15)"),
+}
+
+#: The paper's numbers (Tables VII-IX: Tanks and Temples means, PSNR / SSIM / LPIPS).
+PAPER = {
+    "VII": {"highest": (23.73, 0.851, 0.170), "paper": (23.92, 0.854, 0.168)},
+    "VIII": {"vector": (24.13, 0.858, 0.159), "linear": (24.24, 0.860, 0.156), "mlp": (24.23, 0.860, 0.157),
+             "paper": (24.31, 0.862, 0.155)},
+    "IX": {"dense": (24.20, 0.859, 0.157), "separate": (24.15, 0.858, 0.159), "identity": (24.18, 0.859, 0.158),
+           "paper": (24.31, 0.862, 0.155)},
+}
+TABLE_ROWS = {
+    "VII": ("highest", "paper"),
+    "VIII": ("vector", "linear", "mlp", "paper"),
+    "IX": ("dense", "separate", "identity", "paper"),
+    "Fig12": ("l2", "paper"),
+    "Fig13": ("lambda0", "paper"),
+}
+
+
+def python() -> list[str]:
+    return [sys.executable, "-m", "gscodec_shac"]
+
+
+def run_variant(name: str, args: argparse.Namespace, out_dir: Path) -> dict:
+    """Train one variant (unless already complete) and return its metrics.json."""
+    flags, _, _ = VARIANTS[name]
+    run_dir = out_dir / name
+    metrics_path = run_dir / "metrics.json"
+    if metrics_path.exists() and not args.retrain:
+        metrics = json.loads(metrics_path.read_text())
+        if metrics.get("complete") and metrics.get("iterations_done") == args.iterations:
+            return metrics
+    sh = [] if "--sh" in flags else ["--sh", "lst"]
+    size = ["--resolution-scale", str(args.resolution_scale)] if args.resolution_scale else []
+    images = ["--images", args.images] if args.images else []
+    command = python() + ["train", str(args.capture), str(run_dir), *sh, *flags, *size, *images,
+                          "--iterations", str(args.iterations), "--max-gaussians", str(args.max_gaussians),
+                          "--threads", str(args.threads), "--checkpoint-every", str(max(100, args.iterations // 4)),
+                          "-q"]
+    resume = (run_dir / "checkpoint.npz").exists() and not args.retrain
+    command += ["--resume"] if resume else ["--force"]
+    print(f"[{time.strftime('%H:%M:%S')}] {name}: {' '.join(command[3:])}", flush=True)
+    log = (out_dir / f"{name}.log").open("a")
+    subprocess.run(command, check=True, stdout=log, stderr=subprocess.STDOUT)
+    return json.loads(metrics_path.read_text())
+
+
+def summarise(name: str, m: dict) -> dict:
+    test = m.get("test") or {}
+    return {
+        "variant": name, "label": VARIANTS[name][2], "flags": VARIANTS[name][0], "method": m.get("method"),
+        "psnr": test.get("mean_psnr"), "ssim": test.get("mean_ssim"),
+        "num_gaussians": m["sizes"]["num_gaussians"], "sh_ac_dims": m["sizes"]["sh_ac_dims"],
+        "transform_params": m["sizes"]["transform_params"], "size_mb": m["sizes"]["size_mb"],
+        "train_seconds": m.get("train_seconds"), "seconds_per_iteration_median": median_s_per_it(m),
+        "width": m.get("width"), "height": m.get("height"), "iterations": m.get("iterations_done"),
+        "n_test_views": m.get("n_test_views"),
+    }
+
+
+def median_s_per_it(m: dict) -> float | None:
+    values = sorted(e["s_per_it"] for e in m.get("log", []) if "s_per_it" in e)
+    return values[len(values) // 2] if values else None
+
+
+def markdown(rows: dict[str, dict], setup: dict) -> str:
+    def fmt(v, spec):
+        return "-" if v is None else format(v, spec)
+
+    lines = [f"Setup: {setup['capture_name']}, {setup['width']}x{setup['height']}, {setup['iterations']} iterations, "
+             f"{setup['max_gaussians']:,} Gaussians (MCMC), seed 0, {setup['n_test_views']} held-out views vs photos. "
+             f"Command: `{setup['command']}`", ""]
+    spread = None
+    if "paper" in rows and "paper_seed1" in rows and rows["paper"]["psnr"] is not None:
+        spread = abs(rows["paper"]["psnr"] - rows["paper_seed1"]["psnr"])
+        lines += [f"Seed spread of the paper's model (seed 0 vs 1): {spread:.3f} dB PSNR, "
+                  f"{abs(rows['paper']['ssim'] - rows['paper_seed1']['ssim']):.4f} SSIM.", ""]
+    for table, names in TABLE_ROWS.items():
+        present = [n for n in names if n in rows]
+        if not present:
+            continue
+        title = {"Fig12": "Fig. 12 (subset dimension, one point each)",
+                 "Fig13": "Fig. 13 (scale regulariser, one point each)"}.get(table, f"Table {table}")
+        lines += [f"#### {title}", "", "| variant | AC dims | P_T | size (MB) | PSNR | SSIM | paper PSNR / SSIM / LPIPS |",
+                  "|---|---:|---:|---:|---:|---:|---|"]
+        for n in present:
+            r = rows[n]
+            paper = PAPER.get(table, {}).get(n)
+            paper_text = " / ".join(str(v) for v in paper) if paper else "-"
+            lines.append(f"| {r['label']} | {r['sh_ac_dims']} | {r['transform_params']} | {r['size_mb']:.2f} | "
+                         f"{fmt(r['psnr'], '.2f')} | {fmt(r['ssim'], '.4f')} | {paper_text} |")
+        lines.append("")
+    other = [n for n in ("paper_seed1", "full_l3") if n in rows]
+    if other:
+        lines += ["#### References", "", "| run | AC dims | size (MB) | PSNR | SSIM | s/iteration (median) |",
+                  "|---|---:|---:|---:|---:|---:|"]
+        for n in other + ["paper"]:
+            if n in rows:
+                r = rows[n]
+                lines.append(f"| {r['label']} | {r['sh_ac_dims']} | {r['size_mb']:.2f} | {fmt(r['psnr'], '.2f')} | "
+                             f"{fmt(r['ssim'], '.4f')} | {fmt(r['seconds_per_iteration_median'], '.3f')} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("out_dir", type=Path, help="folder of the runs and of lst_ablations.{json,md}")
+    parser.add_argument("--capture", type=Path, default=Path("../shared/data/scenes/snowmiku_capture"))
+    parser.add_argument("--images", default="images_8")
+    parser.add_argument("--resolution-scale", type=float, default=0.5)
+    parser.add_argument("--iterations", type=int, default=800)
+    parser.add_argument("--max-gaussians", type=int, default=20000)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--only", nargs="+", choices=sorted(VARIANTS), help="train only these variants")
+    parser.add_argument("--retrain", action="store_true", help="train again even when a complete run exists")
+    parser.add_argument("--quick", action="store_true", help="smoke test: 20 iterations, 2,000 Gaussians, "
+                        "scale 0.25, three variants")
+    args = parser.parse_args(argv)
+    names = list(args.only or VARIANTS)
+    if args.quick:
+        args.iterations, args.max_gaussians, args.resolution_scale = 20, 2000, 0.25
+        names = args.only or ["paper", "mlp", "lambda0"]
+    out_dir = args.out_dir
+    out_dir.mkdir(parents=True, exist_ok=True)
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    rows: dict[str, dict] = {}
+    for name in names:
+        rows[name] = summarise(name, run_variant(name, args, out_dir))
+        print(f"  {name}: PSNR {rows[name]['psnr']:.3f} dB, SSIM {rows[name]['ssim']:.4f}", flush=True)
+    first = next(iter(rows.values()))
+    command = ("python scripts/table_lst_ablations.py OUT_DIR --capture " + str(args.capture) +
+               f" --images {args.images} --resolution-scale {args.resolution_scale} --iterations {args.iterations}"
+               f" --max-gaussians {args.max_gaussians}")
+    setup = {"capture": str(args.capture), "capture_name": args.capture.name, "images": args.images,
+             "resolution_scale": args.resolution_scale, "width": first["width"], "height": first["height"],
+             "iterations": args.iterations, "max_gaussians": args.max_gaussians, "threads": args.threads,
+             "n_test_views": first["n_test_views"], "command": command, "quick": args.quick}
+    result = {"setup": setup, "paper": PAPER, "rows": rows}
+    (out_dir / "lst_ablations.json").write_text(json.dumps(result, indent=1) + "\n")
+    (out_dir / "lst_ablations.md").write_text(markdown(rows, setup) + "\n")
+    print(markdown(rows, setup))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
