@@ -96,6 +96,51 @@ def run_variant(name: str, args: argparse.Namespace, out_dir: Path) -> dict:
     return json.loads(metrics_path.read_text())
 
 
+RD_VARIANTS = ("paper", "lambda0", "l2", "full_l3")
+RD_RATE_POINTS = ("paper_table3:rp1", "paper_table3:rp2", "paper_table3:rp3", "paper_table3:rp4")
+
+
+def rd_points(name: str, out_dir: Path, args: argparse.Namespace) -> list[dict]:
+    """Code a trained model at the Table III rate points (trained LST: its own S and T, not refitted;
+    full SH: stage ``none``), decode, render the held-out views and score against the photos."""
+    import numpy as np
+
+    from gscodec_shac.camera import test_split
+    from gscodec_shac.codec import Decoder, Encoder
+    from gscodec_shac.io.cameras import load_cameras
+    from gscodec_shac.io.ply import read_ply
+    from gscodec_shac.metrics import load_image, psnr, ssim
+    from gscodec_shac.render import Renderer
+    from gscodec_shac.train.finetune import load_finetuned
+
+    run_dir = out_dir / name
+    if (run_dir / "point_cloud.lst.npz").exists():
+        cloud, stage = load_finetuned(run_dir / "point_cloud.ply")
+    else:
+        cloud, stage = read_ply(run_dir / "point_cloud.ply"), "none"
+    _, test = test_split(load_cameras(run_dir / "cameras.json", args.capture / args.images))
+    truth = [load_image(c.image_path, size=(c.width, c.height)) for c in test]
+    points = []
+    for rp in RD_RATE_POINTS:
+        data = Encoder(rp, sh_stage=stage, fit_stage=False, workers=1).encode(cloud).to_bytes()
+        renderer = Renderer(Decoder(workers=1).decode(data))
+        images = [renderer.render(c).image for c in test]
+        points.append({"rate_point": rp, "bytes": len(data), "bits_per_gaussian": 8 * len(data) / cloud.num_gaussians,
+                       "psnr": float(np.mean([psnr(i, t) for i, t in zip(images, truth)])),
+                       "ssim": float(np.mean([ssim(i, t) for i, t in zip(images, truth)]))})
+        print(f"  rd {name} {rp}: {len(data):,} B, PSNR {points[-1]['psnr']:.3f} dB", flush=True)
+    return points
+
+
+def rd_markdown(rd: dict[str, list[dict]]) -> str:
+    lines = ["#### Fig. 12 / Fig. 13 as RD points (trained models coded at Table III rate points, PSNR vs photos)", "",
+             "| model | rp1 MB / dB | rp2 MB / dB | rp3 MB / dB | rp4 MB / dB |", "|---|---|---|---|---|"]
+    for name, points in rd.items():
+        cells = [f"{p['bytes'] / 1e6:.3f} / {p['psnr']:.2f}" for p in points]
+        lines.append(f"| {VARIANTS[name][2]} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def summarise(name: str, m: dict) -> dict:
     test = m.get("test") or {}
     return {
@@ -165,13 +210,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--only", nargs="+", choices=sorted(VARIANTS), help="train only these variants")
     parser.add_argument("--retrain", action="store_true", help="train again even when a complete run exists")
+    parser.add_argument("--rd", action="store_true", help="also code the paper / lambda_t = 0 / L = 2 / full-SH "
+                        "models at the Table III rate points (Fig. 12-13 as RD points)")
     parser.add_argument("--quick", action="store_true", help="smoke test: 20 iterations, 2,000 Gaussians, "
                         "scale 0.25, three variants")
     args = parser.parse_args(argv)
     names = list(args.only or VARIANTS)
     if args.quick:
         args.iterations, args.max_gaussians, args.resolution_scale = 20, 2000, 0.25
-        names = args.only or ["paper", "mlp", "lambda0"]
+        names = args.only or ["paper", "mlp", "lambda0", "full_l3"]
     out_dir = args.out_dir
     out_dir.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -188,9 +235,13 @@ def main(argv: list[str] | None = None) -> int:
              "iterations": args.iterations, "max_gaussians": args.max_gaussians, "threads": args.threads,
              "n_test_views": first["n_test_views"], "command": command, "quick": args.quick}
     result = {"setup": setup, "paper": PAPER, "rows": rows}
+    text = markdown(rows, setup)
+    if args.rd:
+        result["rd"] = {name: rd_points(name, out_dir, args) for name in RD_VARIANTS if name in rows}
+        text += "\n" + rd_markdown(result["rd"])
     (out_dir / "lst_ablations.json").write_text(json.dumps(result, indent=1) + "\n")
-    (out_dir / "lst_ablations.md").write_text(markdown(rows, setup) + "\n")
-    print(markdown(rows, setup))
+    (out_dir / "lst_ablations.md").write_text(text + "\n")
+    print(text)
     return 0
 
 
