@@ -118,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     if args.quick:
         args.sizes, args.rounds, args.block, args.warmup = [500, 1500], 2, 2, 1
-    rows = []
+    rows: list[dict] = []
+    load_start = list(os.getloadavg())
     for n in args.sizes:
         if args.quick:
             capture = synthetic_capture(2000, n_cameras=8, width=48, height=36, init_points=n, seed=3)
@@ -131,17 +132,16 @@ def main(argv: list[str] | None = None) -> int:
                 args.capture, images=args.images, resolution_scale=args.resolution_scale, random_points=extra,
                 seed=0, progress=False)
         rows += measure(capture, n, args)
-    first = capture.train_cameras[0]
-    setup = {"capture": "synthetic (quick)" if args.quick else args.capture.name, "width": first.width,
-             "height": first.height, "sizes": args.sizes, "warmup": args.warmup, "rounds": args.rounds,
-             "block": args.block, "load": list(os.getloadavg()), "quick": args.quick}
-    setup["load_end"] = list(os.getloadavg())
-    text = markdown(rows, setup)
+        first = capture.train_cameras[0]
+        setup = {"capture": "synthetic (quick)" if args.quick else args.capture.name, "width": first.width,
+                 "height": first.height, "sizes": args.sizes, "warmup": args.warmup, "rounds": args.rounds,
+                 "block": args.block, "load": load_start, "load_end": list(os.getloadavg()), "quick": args.quick}
+        text = markdown(rows, setup)  # written after every size, so a stopped run keeps what it measured
+        if args.json:
+            args.json.write_text(json.dumps({"setup": setup, "paper": PAPER, "rows": rows}, indent=1) + "\n")
+        if args.md:
+            args.md.write_text(text)
     print(text)
-    if args.json:
-        args.json.write_text(json.dumps({"setup": setup, "paper": PAPER, "rows": rows}, indent=1) + "\n")
-    if args.md:
-        args.md.write_text(text)
     return 0
 
 

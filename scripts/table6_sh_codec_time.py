@@ -189,14 +189,16 @@ def main(argv: list[str] | None = None) -> int:
     rate_point = load_rate_point(args.rate_point)
     setup = {"rate_point": args.rate_point, "sh_qp": rate_point.attributes["sh_ac"].qp, "repeats": args.repeats,
              "sort": args.sort or rate_point.sort.method, "load": list(os.getloadavg()), "quick": args.quick}
-    rows = [row for name, cloud in scenes for row in time_scene(name, cloud, args)]
-    setup["load_end"] = list(os.getloadavg())
-    text = markdown(rows, setup)
+    rows: list[dict] = []
+    for name, cloud in scenes:
+        rows += time_scene(name, cloud, args)
+        setup["load_end"] = list(os.getloadavg())
+        text = markdown(rows, setup)  # written after every scene, so a stopped run keeps what it measured
+        if args.json:
+            args.json.write_text(json.dumps({"setup": setup, "paper": PAPER, "rows": rows}, indent=1) + "\n")
+        if args.md:
+            args.md.write_text(text)
     print(text)
-    if args.json:
-        args.json.write_text(json.dumps({"setup": setup, "paper": PAPER, "rows": rows}, indent=1) + "\n")
-    if args.md:
-        args.md.write_text(text)
     return 0
 
 
