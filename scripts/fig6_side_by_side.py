@@ -4,9 +4,10 @@ size, with residual maps (docs/paper.md).
 Per scene: the baseline is our codec with every SH AC coefficient coded (stage ``none``) at one
 rate point (default the coarsest Table III point, ``paper_table3:rp1``); ours is the same codec
 with a low-rank SH stage at the *largest* rate point whose file is not larger than the
-baseline's (so ours is never given more bytes). "Ours" is SHAC-LST with the trained S and T of
-a model trained with ``gscodec-shac train --sh lst`` (``--lst-model``, its own geometry, as the
-paper's gscodec+SHAC-LST uses the Gaussians of gsplat+SHAC-LST) or, without one, SHAC-PCA at
+baseline's (so ours is never given more bytes). With ``lst_model`` (a model trained with
+``gscodec-shac train --sh lst``) ours codes that model's trained S and T (no refit); the
+``snowmiku`` preset uses the LST-trained model for both, so the two files differ only in how the
+SH are coded (45 expanded AC coefficients vs the 21 of S). Without one, ours is SHAC-PCA at
 ER 0.99 on the baseline's model. Both are decoded, rendered at the held-out views (every 8th in
 name order) and scored against the photos; the figure shows one held-out view (``--view``, by
 default the first, not chosen by result): photo, the two renders, and |render - photo| x
@@ -44,9 +45,9 @@ PRESETS = {
                "ply": "../shared/data/scenes/bonsai_cpu_sh3/point_cloud.ply",
                "cameras": "../shared/data/scenes/bonsai_cpu_sh3/cameras.json",
                "images": "../shared/data/scenes/mipnerf360_bonsai/images", "lst_model": None},
-    "snowmiku": {"label": "snowmiku (20k, 248x186, 800 iterations)",
-                 "ply": "../outputs/paper-doc/lst_ablations/full_l3/point_cloud.ply",
-                 "cameras": "../outputs/paper-doc/lst_ablations/full_l3/cameras.json",
+    "snowmiku": {"label": "snowmiku (trained as SHAC-LST, 20k, 248x186, 800 iterations)",
+                 "ply": "../outputs/paper-doc/lst_ablations/paper/point_cloud.ply",
+                 "cameras": "../outputs/paper-doc/lst_ablations/paper/cameras.json",
                  "images": "../shared/data/scenes/snowmiku_capture/images_8",
                  "lst_model": "../outputs/paper-doc/lst_ablations/paper/point_cloud.ply"},
 }

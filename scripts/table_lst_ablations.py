@@ -21,7 +21,7 @@ is read, not retrained (``--retrain`` forces). Results: ``lst_ablations.json`` a
 
     python scripts/table_lst_ablations.py ../outputs/lst_ablations \\
         --capture ../shared/data/scenes/snowmiku_capture --images images_8 --resolution-scale 0.5 \\
-        --iterations 800 --max-gaussians 20000
+        --iterations 400 --max-gaussians 10000
     python scripts/table_lst_ablations.py /tmp/lst_quick --quick     # a smoke run (minutes)
 """
 
@@ -205,8 +205,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--capture", type=Path, default=Path("../shared/data/scenes/snowmiku_capture"))
     parser.add_argument("--images", default="images_8")
     parser.add_argument("--resolution-scale", type=float, default=0.5)
-    parser.add_argument("--iterations", type=int, default=800)
-    parser.add_argument("--max-gaussians", type=int, default=20000)
+    parser.add_argument("--iterations", type=int, default=400)
+    parser.add_argument("--max-gaussians", type=int, default=10000)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--only", nargs="+", choices=sorted(VARIANTS), help="train only these variants")
     parser.add_argument("--retrain", action="store_true", help="train again even when a complete run exists")
