@@ -152,8 +152,12 @@ def figure(panels: list[dict], out: Path, gain: float) -> None:
             ax.axis("off")
     fig.tight_layout(pad=0.3)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    fig.savefig(out, dpi=72)
     plt.close(fig)
+    from PIL import Image  # 256 colours keep the PNG near 100 KB (docs/figures stays small)
+
+    Image.open(out).convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT,
+                                            dither=Image.Dither.NONE).save(out, optimize=True)
 
 
 def main(argv: list[str] | None = None) -> int:
