@@ -72,10 +72,19 @@ def python() -> list[str]:
     return [sys.executable, "-m", "gscodec_shac"]
 
 
-def run_variant(name: str, args: argparse.Namespace, out_dir: Path) -> dict:
-    """Train one variant (unless already complete) and return its metrics.json."""
+def run_dir_of(out_dir: Path, name: str, seed: int) -> Path:
+    """``NAME`` for seed 0, ``NAME_s<seed>`` otherwise (the paper's model at seed 1 is ``paper_seed1``)."""
+    if seed == 0:
+        return out_dir / name
+    return out_dir / ("paper_seed1" if (name, seed) == ("paper", 1) else f"{name}_s{seed}")
+
+
+def run_variant(name: str, args: argparse.Namespace, out_dir: Path, seed: int = 0) -> dict:
+    """Train one variant at one seed (unless already complete) and return its metrics.json."""
     flags, _, _ = VARIANTS[name]
-    run_dir = out_dir / name
+    if seed:
+        flags = [*flags, "--seed", str(seed)]
+    run_dir = run_dir_of(out_dir, name, seed)
     metrics_path = run_dir / "metrics.json"
     if metrics_path.exists() and not args.retrain:
         metrics = json.loads(metrics_path.read_text())
@@ -90,8 +99,8 @@ def run_variant(name: str, args: argparse.Namespace, out_dir: Path) -> dict:
                           "-q"]
     resume = (run_dir / "checkpoint.npz").exists() and not args.retrain
     command += ["--resume"] if resume else ["--force"]
-    print(f"[{time.strftime('%H:%M:%S')}] {name}: {' '.join(command[3:])}", flush=True)
-    log = (out_dir / f"{name}.log").open("a")
+    print(f"[{time.strftime('%H:%M:%S')}] {run_dir.name}: {' '.join(command[3:])}", flush=True)
+    log = (out_dir / f"{run_dir.name}.log").open("a")
     subprocess.run(command, check=True, stdout=log, stderr=subprocess.STDOUT)
     return json.loads(metrics_path.read_text())
 
@@ -164,27 +173,31 @@ def markdown(rows: dict[str, dict], setup: dict) -> str:
         return "-" if v is None else format(v, spec)
 
     lines = [f"Setup: {setup['capture_name']}, {setup['width']}x{setup['height']}, {setup['iterations']} iterations, "
-             f"{setup['max_gaussians']:,} Gaussians (MCMC), seed 0, {setup['n_test_views']} held-out views vs photos. "
+             f"{setup['max_gaussians']:,} Gaussians (MCMC), seeds {', '.join(map(str, setup['seeds']))}, "
+             f"{setup['n_test_views']} held-out views vs photos. "
              f"Command: `{setup['command']}`", ""]
-    spread = None
-    if "paper" in rows and "paper_seed1" in rows and rows["paper"]["psnr"] is not None:
-        spread = abs(rows["paper"]["psnr"] - rows["paper_seed1"]["psnr"])
-        lines += [f"Seed spread of the paper's model (seed 0 vs 1): {spread:.3f} dB PSNR, "
-                  f"{abs(rows['paper']['ssim'] - rows['paper_seed1']['ssim']):.4f} SSIM.", ""]
+    paper_seeds = dict(rows["paper"]["per_seed"]) if "paper" in rows else {}
+    if "paper_seed1" in rows and 1 not in paper_seeds:
+        paper_seeds[1] = rows["paper_seed1"]["per_seed"][0]
+    if len(paper_seeds) > 1:
+        values = [v["psnr"] for _, v in sorted(paper_seeds.items())]
+        lines += [f"Seed spread of the paper's model (seeds {', '.join(map(str, sorted(paper_seeds)))}): PSNR "
+                  f"{', '.join(f'{v:.2f}' for v in values)} dB, range {max(values) - min(values):.2f} dB.", ""]
     for table, names in TABLE_ROWS.items():
         present = [n for n in names if n in rows]
         if not present:
             continue
         title = {"Fig12": "Fig. 12 (subset dimension, one point each)",
                  "Fig13": "Fig. 13 (scale regulariser, one point each)"}.get(table, f"Table {table}")
-        lines += [f"#### {title}", "", "| variant | AC dims | P_T | size (MB) | PSNR | SSIM | paper PSNR / SSIM / LPIPS |",
-                  "|---|---:|---:|---:|---:|---:|---|"]
+        lines += [f"#### {title}", "", "| variant | AC dims | P_T | size (MB) | PSNR (mean) | per seed | SSIM (mean) | "
+                  "paper PSNR / SSIM / LPIPS |", "|---|---:|---:|---:|---:|---|---:|---|"]
         for n in present:
             r = rows[n]
             paper = PAPER.get(table, {}).get(n)
             paper_text = " / ".join(str(v) for v in paper) if paper else "-"
+            per_seed = ", ".join(f"{v['psnr']:.2f}" for _, v in sorted(r["per_seed"].items()))
             lines.append(f"| {r['label']} | {r['sh_ac_dims']} | {r['transform_params']} | {r['size_mb']:.2f} | "
-                         f"{fmt(r['psnr'], '.2f')} | {fmt(r['ssim'], '.4f')} | {paper_text} |")
+                         f"{fmt(r['psnr'], '.2f')} | {per_seed} | {fmt(r['ssim'], '.4f')} | {paper_text} |")
         lines.append("")
     other = [n for n in ("paper_seed1", "full_l3") if n in rows]
     if other:
@@ -210,6 +223,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--only", nargs="+", choices=sorted(VARIANTS), help="train only these variants")
     parser.add_argument("--retrain", action="store_true", help="train again even when a complete run exists")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="train every variant at each seed; "
+                        "tables show the mean over the seeds (default 0)")
     parser.add_argument("--rd", action="store_true", help="also code the paper / lambda_t = 0 / L = 2 / full-SH "
                         "models at the Table III rate points (Fig. 12-13 as RD points)")
     parser.add_argument("--quick", action="store_true", help="smoke test: 20 iterations, 2,000 Gaussians, "
@@ -223,17 +238,27 @@ def main(argv: list[str] | None = None) -> int:
     out_dir.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     rows: dict[str, dict] = {}
-    for name in names:
-        rows[name] = summarise(name, run_variant(name, args, out_dir))
-        print(f"  {name}: PSNR {rows[name]['psnr']:.3f} dB, SSIM {rows[name]['ssim']:.4f}", flush=True)
+    for seed in args.seeds:  # all variants at one seed before the next seed
+        for name in names:
+            if name == "paper_seed1" and seed:
+                continue
+            metrics = run_variant(name, args, out_dir, seed)
+            row = summarise(name, metrics)
+            rows.setdefault(name, {**row, "per_seed": {}})["per_seed"][seed] = {"psnr": row["psnr"], "ssim": row["ssim"]}
+            print(f"  {name} seed {seed}: PSNR {row['psnr']:.3f} dB, SSIM {row['ssim']:.4f}", flush=True)
+    for row in rows.values():  # PSNR / SSIM of a row = the mean over its seeds
+        seeds = row["per_seed"]
+        row["psnr"] = sum(v["psnr"] for v in seeds.values()) / len(seeds)
+        row["ssim"] = sum(v["ssim"] for v in seeds.values()) / len(seeds)
+        row["psnr_range"] = max(v["psnr"] for v in seeds.values()) - min(v["psnr"] for v in seeds.values())
     first = next(iter(rows.values()))
     command = ("python scripts/table_lst_ablations.py OUT_DIR --capture " + str(args.capture) +
                f" --images {args.images} --resolution-scale {args.resolution_scale} --iterations {args.iterations}"
-               f" --max-gaussians {args.max_gaussians}")
+               f" --max-gaussians {args.max_gaussians} --seeds {' '.join(map(str, args.seeds))}" + (" --rd" if args.rd else ""))
     setup = {"capture": str(args.capture), "capture_name": args.capture.name, "images": args.images,
              "resolution_scale": args.resolution_scale, "width": first["width"], "height": first["height"],
              "iterations": args.iterations, "max_gaussians": args.max_gaussians, "threads": args.threads,
-             "n_test_views": first["n_test_views"], "command": command, "quick": args.quick}
+             "n_test_views": first["n_test_views"], "command": command, "quick": args.quick, "seeds": args.seeds}
     result = {"setup": setup, "paper": PAPER, "rows": rows}
     text = markdown(rows, setup)
     if args.rd:
