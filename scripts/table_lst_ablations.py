@@ -163,6 +163,17 @@ def summarise(name: str, m: dict) -> dict:
     }
 
 
+def t_norm(run_dir: Path) -> float | None:
+    """Largest singular value of the trained T (error gain S -> A~), matrix operators only."""
+    if not (run_dir / "point_cloud.lst.npz").exists():
+        return None
+    import numpy as np
+
+    from gscodec_shac.train.finetune import load_finetuned
+
+    return float(np.linalg.norm(load_finetuned(run_dir / "point_cloud.ply")[1].transform_matrix(), 2))
+
+
 def median_s_per_it(m: dict) -> float | None:
     values = sorted(e["s_per_it"] for e in m.get("log", []) if "s_per_it" in e)
     return values[len(values) // 2] if values else None
@@ -190,14 +201,15 @@ def markdown(rows: dict[str, dict], setup: dict) -> str:
         title = {"Fig12": "Fig. 12 (subset dimension, one point each)",
                  "Fig13": "Fig. 13 (scale regulariser, one point each)"}.get(table, f"Table {table}")
         lines += [f"#### {title}", "", "| variant | AC dims | P_T | size (MB) | PSNR (mean) | per seed | SSIM (mean) | "
-                  "paper PSNR / SSIM / LPIPS |", "|---|---:|---:|---:|---:|---|---:|---|"]
+                  "‖T‖₂ | paper PSNR / SSIM / LPIPS |", "|---|---:|---:|---:|---:|---|---:|---:|---|"]
         for n in present:
             r = rows[n]
             paper = PAPER.get(table, {}).get(n)
             paper_text = " / ".join(str(v) for v in paper) if paper else "-"
             per_seed = ", ".join(f"{v['psnr']:.2f}" for _, v in sorted(r["per_seed"].items()))
             lines.append(f"| {r['label']} | {r['sh_ac_dims']} | {r['transform_params']} | {r['size_mb']:.2f} | "
-                         f"{fmt(r['psnr'], '.2f')} | {per_seed} | {fmt(r['ssim'], '.4f')} | {paper_text} |")
+                         f"{fmt(r['psnr'], '.2f')} | {per_seed} | {fmt(r['ssim'], '.4f')} | {fmt(r['t_norm'], '.2f')} | "
+                         f"{paper_text} |")
         lines.append("")
     other = [n for n in ("paper_seed1", "full_l3") if n in rows]
     if other:
@@ -244,13 +256,16 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             metrics = run_variant(name, args, out_dir, seed)
             row = summarise(name, metrics)
-            rows.setdefault(name, {**row, "per_seed": {}})["per_seed"][seed] = {"psnr": row["psnr"], "ssim": row["ssim"]}
+            rows.setdefault(name, {**row, "per_seed": {}})["per_seed"][seed] = {
+                "psnr": row["psnr"], "ssim": row["ssim"], "t_norm": t_norm(run_dir_of(out_dir, name, seed))}
             print(f"  {name} seed {seed}: PSNR {row['psnr']:.3f} dB, SSIM {row['ssim']:.4f}", flush=True)
     for row in rows.values():  # PSNR / SSIM of a row = the mean over its seeds
         seeds = row["per_seed"]
         row["psnr"] = sum(v["psnr"] for v in seeds.values()) / len(seeds)
         row["ssim"] = sum(v["ssim"] for v in seeds.values()) / len(seeds)
         row["psnr_range"] = max(v["psnr"] for v in seeds.values()) - min(v["psnr"] for v in seeds.values())
+        norms = [v["t_norm"] for v in seeds.values() if v["t_norm"] is not None]
+        row["t_norm"] = sum(norms) / len(norms) if norms else None
     first = next(iter(rows.values()))
     command = ("python scripts/table_lst_ablations.py OUT_DIR --capture " + str(args.capture) +
                f" --images {args.images} --resolution-scale {args.resolution_scale} --iterations {args.iterations}"
