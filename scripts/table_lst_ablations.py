@@ -192,6 +192,19 @@ def median_s_per_it(m: dict) -> float | None:
     return values[len(values) // 2] if values else None
 
 
+def paired(rows: dict[str, dict], name: str) -> str:
+    """PSNR of ``name`` minus the paper's model's, seed by seed (same seed = same views order and
+    initial subset), and their mean: the comparison with the least seed noise."""
+    if name == "paper" or "paper" not in rows:
+        return "-"
+    mine, ref = rows[name]["per_seed"], rows["paper"]["per_seed"]
+    common = sorted(set(mine) & set(ref))
+    if not common:
+        return "-"
+    deltas = [mine[k]["psnr"] - ref[k]["psnr"] for k in common]
+    return ", ".join(f"{d:+.2f}" for d in deltas) + f" ({sum(deltas) / len(deltas):+.2f})"
+
+
 def markdown(rows: dict[str, dict], setup: dict) -> str:
     def fmt(v, spec):
         return "-" if v is None else format(v, spec)
@@ -213,16 +226,17 @@ def markdown(rows: dict[str, dict], setup: dict) -> str:
             continue
         title = {"Fig12": "Fig. 12 (subset dimension, one point each)",
                  "Fig13": "Fig. 13 (scale regulariser, one point each)"}.get(table, f"Table {table}")
-        lines += [f"#### {title}", "", "| variant | AC dims | P_T | size (MB) | PSNR (mean) | per seed | SSIM (mean) | "
-                  "‖T‖₂ | paper PSNR / SSIM / LPIPS |", "|---|---:|---:|---:|---:|---|---:|---:|---|"]
+        lines += [f"#### {title}", "", "| variant | AC dims | P_T | size (MB) | PSNR (mean) | per seed | Δ vs paper's "
+                  "model, per seed (mean) | SSIM (mean) | ‖T‖₂ | paper PSNR / SSIM / LPIPS |",
+                  "|---|---:|---:|---:|---:|---|---|---:|---:|---|"]
         for n in present:
             r = rows[n]
             paper = PAPER.get(table, {}).get(n)
             paper_text = " / ".join(str(v) for v in paper) if paper else "-"
             per_seed = ", ".join(f"{v['psnr']:.2f}" for _, v in sorted(r["per_seed"].items()))
             lines.append(f"| {r['label']} | {r['sh_ac_dims']} | {r['transform_params']} | {r['size_mb']:.2f} | "
-                         f"{fmt(r['psnr'], '.2f')} | {per_seed} | {fmt(r['ssim'], '.4f')} | {fmt(r['t_norm'], '.2f')} | "
-                         f"{paper_text} |")
+                         f"{fmt(r['psnr'], '.2f')} | {per_seed} | {paired(rows, n)} | {fmt(r['ssim'], '.4f')} | "
+                         f"{fmt(r['t_norm'], '.2f')} | {paper_text} |")
         lines.append("")
     other = [n for n in ("paper_seed1", "full_l3") if n in rows]
     if other:
