@@ -240,13 +240,15 @@ def markdown(rows: dict[str, dict], setup: dict) -> str:
         lines.append("")
     other = [n for n in ("paper_seed1", "full_l3") if n in rows]
     if other:
-        lines += ["#### References", "", "| run | AC dims | size (MB) | PSNR | SSIM | s/iteration (median) |",
-                  "|---|---:|---:|---:|---:|---:|"]
+        lines += ["#### References", "", "| run | AC dims | size (MB) | PSNR (mean) | per seed | Δ vs paper's model | "
+                  "SSIM (mean) | s/iteration (median, seed 0) |", "|---|---:|---:|---:|---|---|---:|---:|"]
         for n in other + ["paper"]:
             if n in rows:
                 r = rows[n]
+                per_seed = ", ".join(f"{v['psnr']:.2f}" for _, v in sorted(r["per_seed"].items()))
                 lines.append(f"| {r['label']} | {r['sh_ac_dims']} | {r['size_mb']:.2f} | {fmt(r['psnr'], '.2f')} | "
-                             f"{fmt(r['ssim'], '.4f')} | {fmt(r['seconds_per_iteration_median'], '.3f')} |")
+                             f"{per_seed} | {paired(rows, n)} | {fmt(r['ssim'], '.4f')} | "
+                             f"{fmt(r['seconds_per_iteration_median'], '.3f')} |")
         lines.append("")
     return "\n".join(lines)
 
