@@ -24,7 +24,8 @@ import time
 S = "../shared/data/scenes"
 O = "../outputs/paper"
 
-#: (item, document, full command or None, smoke command or None); {tmp} = a temporary folder.
+#: (item, document, full command or None, smoke command or None); {tmp} = a temporary folder;
+#: " && " separates commands run in order.
 ITEMS: list[tuple[str, str, str | None, str | None]] = [
     ("Table I", "docs/analysis.md",
      f"gscodec-shac analyze {S}/kacy_sh3_9k/point_cloud.ply {S}/bonsai_cpu_sh3/point_cloud.ply --er 0.95 --k 24 "
@@ -45,6 +46,8 @@ ITEMS: list[tuple[str, str, str | None, str | None]] = [
     ("Fig. 4", "docs/gsplat_pca.md", None, None),
     ("Fig. 5", "docs/rd.md", f"gscodec-shac rd sweeps/bonsai.yaml {O}/rd_bonsai --workers 1", None),
     ("Fig. 6", "docs/paper.md",
+     f"python scripts/table_lst_ablations.py ../outputs/paper-doc/lst_ablations --capture {S}/snowmiku_capture "
+     "--iterations 800 --max-gaussians 20000 --only paper && "
      "python scripts/fig6_side_by_side.py --preset bonsai --preset snowmiku --out docs/figures/fig6_side_by_side.png "
      f"--json {O}/fig6.json",
      "python scripts/fig6_side_by_side.py --quick --out {tmp}/fig6.png"),
@@ -53,17 +56,19 @@ ITEMS: list[tuple[str, str, str | None, str | None]] = [
     ("Fig. 9", "docs/rd.md", f"gscodec-shac rd sweeps/playbot.yaml {O}/rd_playbot --workers 1", None),
     ("Table IV", "docs/dynamic.md", None, None),
     ("Table V", "docs/paper.md",
-     f"python scripts/table5_training_overhead.py --capture {S}/snowmiku_capture --sizes 25000 100000 --rounds 6 "
-     f"--json {O}/table5.json --md {O}/table5.md",
+     f"python scripts/table5_training_overhead.py --capture {S}/snowmiku_capture --sizes 10000 40000 --rounds 3 "
+     f"--block 6 --json {O}/table5.json --md {O}/table5.md",
      "python scripts/table5_training_overhead.py --quick"),
     ("Table VI", "docs/paper.md",
-     f"python scripts/table6_sh_codec_time.py --scene bonsai_cpu_sh3={S}/bonsai_cpu_sh3/point_cloud.ply --repeats 3 "
-     f"--json {O}/table6_bonsai.json",
+     f"python scripts/table6_sh_codec_time.py --scene bonsai_cpu_sh3={S}/bonsai_cpu_sh3/point_cloud.ply --repeats 1 "
+     f"--json {O}/table6_bonsai.json && python scripts/table6_sh_codec_time.py --synthetic 200000 --sort morton "
+     f"--repeats 1 --json {O}/table6_synthetic200k.json",
      "python scripts/table6_sh_codec_time.py --quick"),
     ("Fig. 10", "docs/ablations.md", None, None),
     ("Fig. 11", "docs/ablations.md", None, None),
     ("Table VII", "docs/paper.md",
-     f"python scripts/table_lst_ablations.py {O}/lst_ablations --capture {S}/snowmiku_capture --rd",
+     f"python scripts/table_lst_ablations.py {O}/lst_ablations_400 --capture {S}/snowmiku_capture --iterations 400 "
+     "--max-gaussians 10000 --seeds 0 1 2 --rd",
      "python scripts/table_lst_ablations.py {tmp}/lst_ablations --quick --rd --capture " + f"{S}/snowmiku_capture"),
     ("Fig. 12", "docs/paper.md", "(Table VII's command: variants paper and l2, --rd)", None),
     ("Fig. 13", "docs/paper.md", "(Table VII's command: variants paper and lambda0, --rd)", None),
@@ -113,8 +118,14 @@ def main(argv: list[str] | None = None) -> int:
         if command is None or command.startswith("("):
             print(f"{item}: no command of its own here; see {doc}" + (f" {command}" if command else ""))
             return 0
+        if not args.quick:
+            os.makedirs(os.path.join(root, O), exist_ok=True)  # the full commands write their JSON there
         with tempfile.TemporaryDirectory() as tmp:
-            return subprocess.run(argv_of(command, tmp), cwd=root, env=env).returncode
+            for part in command.split(" && "):  # several commands run in order, stopping at a failure
+                code = subprocess.run(argv_of(part, tmp), cwd=root, env=env).returncode
+                if code:
+                    return code
+            return 0
     for item, doc, full, quick in ITEMS:
         print(f"{item:10s} {doc:22s} {full or '(see the document)'}")
     return 0
