@@ -39,7 +39,7 @@ from gscodec_shac.render import Renderer  # noqa: E402
 
 RATE_POINTS = ["paper_table3:rp1", "paper_table3:rp2", "paper_table3:rp3", "paper_table3:rp4"]
 
-#: Scenes known to this script (paths relative to the repository root of a checkout in /work-like layout).
+#: Scenes known to this script (paths relative to the repository root, with ../shared and ../outputs beside it).
 PRESETS = {
     "bonsai": {"label": "bonsai_cpu_sh3 (Mip-NeRF 360 bonsai, 75k, 200x133)",
                "ply": "../shared/data/scenes/bonsai_cpu_sh3/point_cloud.ply",
