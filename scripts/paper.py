@@ -60,7 +60,7 @@ ITEMS: list[tuple[str, str, str | None, str | None]] = [
      f"--block 6 --json {O}/table5.json --md {O}/table5.md",
      "python scripts/table5_training_overhead.py --quick"),
     ("Table VI", "docs/paper.md",
-     f"python scripts/table6_sh_codec_time.py --scene bonsai_cpu_sh3={S}/bonsai_cpu_sh3/point_cloud.ply --repeats 1 "
+     f"python scripts/table6_sh_codec_time.py --scene bonsai_cpu_sh3={S}/bonsai_cpu_sh3/point_cloud.ply --repeats 3 "
      f"--json {O}/table6_bonsai.json && python scripts/table6_sh_codec_time.py --synthetic 200000 --sort morton "
      f"--repeats 1 --json {O}/table6_synthetic200k.json",
      "python scripts/table6_sh_codec_time.py --quick"),
