@@ -68,7 +68,7 @@ ITEMS: list[tuple[str, str, str | None, str | None]] = [
     ("Fig. 11", "docs/ablations.md", None, None),
     ("Table VII", "docs/paper.md",
      f"python scripts/table_lst_ablations.py {O}/lst_ablations_400 --capture {S}/snowmiku_capture --iterations 400 "
-     "--max-gaussians 10000 --seeds 0 1 2 --rd",
+     "--max-gaussians 10000 --seeds 0 1 2 3 --rd",
      "python scripts/table_lst_ablations.py {tmp}/lst_ablations --quick --rd --capture " + f"{S}/snowmiku_capture"),
     ("Fig. 12", "docs/paper.md", "(Table VII's command: variants paper and l2, --rd)", None),
     ("Fig. 13", "docs/paper.md", "(Table VII's command: variants paper and lambda0, --rd)", None),
