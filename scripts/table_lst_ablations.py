@@ -13,15 +13,17 @@ lambda_t = 5e-3) in one setting only:
 * Fig. 12 (subset dimension): ``--sh-degree 2`` (L = 2, d = 15); L = 4 is beyond the trainer (SH 0-3);
 * Fig. 13 (scale regulariser): ``--lambda-t 0``.
 
-The paper's model is also trained with a second seed (the seed-to-seed spread is the yardstick
-for every difference), and a full-SH Train-L3-D45 model with the same schedule is the anchor.
+With ``--seeds`` every variant is trained at each seed and the tables show the mean, each seed,
+and the paired difference to the paper's model of the same seed (the seed-to-seed spread is the
+yardstick for every difference); a full-SH Train-L3-D45 model with the same schedule is the
+anchor, and ``paper_seed1`` is the paper's model at seed 1 (the same run as ``paper`` at seed 1).
 Runs are sequential, one thread each, and resumable: a run whose ``metrics.json`` says complete
 is read, not retrained (``--retrain`` forces). Results: ``lst_ablations.json`` and
 ``lst_ablations.md`` in OUT_DIR.
 
     python scripts/table_lst_ablations.py ../outputs/lst_ablations \\
         --capture ../shared/data/scenes/snowmiku_capture --images images_8 --resolution-scale 0.5 \\
-        --iterations 400 --max-gaussians 10000
+        --iterations 400 --max-gaussians 10000 --seeds 0 1 2 3 --rd
     python scripts/table_lst_ablations.py /tmp/lst_quick --quick     # a smoke run (minutes)
 """
 
