@@ -10,8 +10,8 @@ scored against the capture's photos, loaded exactly as the trainer loads them.
 Size (MB) counts float32 parameters as the paper's Table II does: N x (14 + D) x 4 bytes plus
 side information (PCA basis + mean + std, LST blocks of T).
 
-    python scripts/table_train.py /work/shared/data/scenes/snowmiku_capture \\
-        --runs /work/outputs/train --prefix snowmiku --images images_8 --json snowmiku_table.json
+    python scripts/table_train.py ../shared/data/scenes/snowmiku_capture \\
+        --runs ../outputs/train --prefix snowmiku --images images_8 --json snowmiku_table.json
 """
 
 from __future__ import annotations

@@ -3,6 +3,7 @@ finite differences, training, checkpoints, variants, outputs and the CLI (tiny s
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -330,3 +331,18 @@ def test_cli_runs_resumes_and_writes_outputs(scene, tmp_path):
     assert cloud.num_gaussians == scene.cloud.num_gaussians
     again = subprocess.run(base + ["--resume"], capture_output=True, text=True, timeout=300)
     assert again.returncode == 0 and "resumed at step 4" in again.stdout
+
+
+def test_cli_trains_an_ablation_variant_and_refuses_a_posthoc_start_for_it(scene, tmp_path, capsys):
+    write_ply(tmp_path / "in.ply", scene.cloud)
+    write_inria_cameras(tmp_path / "cameras.json", scene.cameras)
+    base = ["lst-finetune", str(tmp_path / "in.ply"), str(tmp_path / "out.ply"), "--cameras",
+            str(tmp_path / "cameras.json"), "--steps", "3", "--width", "32", "--quiet", "--lst-operator", "mlp"]
+    assert cli_main(base) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "--start module" in err and not (tmp_path / "out.ply").exists()
+    assert cli_main(base + ["--start", "module"]) == 0
+    summary = json.loads((tmp_path / "out.finetune.json").read_text())
+    assert summary["config"]["lst"]["operator"] == "mlp" and summary["compact"] is None
+    assert summary["side_bytes"] > 4 * 300 and (tmp_path / "out.ply").is_file()
+    assert not (tmp_path / "out.lst.npz").exists()

@@ -219,11 +219,57 @@ def test_resume_continues_bit_identically(tiny_capture, tmp_path: Path, strategy
     assert straight.model.step == resumed.model.step == 60
 
 
+@pytest.mark.parametrize("variant", [
+    {"lst_operator": "mlp"}, {"lst_operator": "linear", "lst_init": "identity"}, {"lst_operator": "vector"},
+    {"lst_subset": "highest", "lst_structure": "dense"}, {"lst_rgb": "separate"}, {"lambda_t": 0.0},
+])
+def test_lst_variants_train_and_resume_bit_identically(tiny_capture, tmp_path: Path, variant: dict) -> None:
+    """Every Sec. VII-E variant learns its operator, and checkpoints hold every operator weight."""
+    config = TrainConfig(iterations=24, sh="lst", strategy="mcmc", max_gaussians=500, sh_interval=2,
+                         refine_from=5, refine_every=10, log_every=1000, **variant)
+    straight = Trainer(tiny_capture, config)
+    before = {k: v.detach().clone() for k, v in straight.model.lst_parameters().items()}
+    straight.train(progress=False)
+    assert straight.model.lst.config.as_dict() == config.lst_config().as_dict()
+    changed = [k for k, v in straight.model.lst_parameters().items() if not torch.equal(v.detach(), before[k])]
+    assert changed, "the operator was not trained"
+    first = Trainer(tiny_capture, config)
+    while first.iteration < 11:
+        first.step()
+    first.save_checkpoint(tmp_path / "checkpoint.npz")
+    resumed = Trainer.from_checkpoint(tiny_capture, tmp_path / "checkpoint.npz")
+    assert resumed.model.lst.config == straight.model.lst.config
+    resumed.train(progress=False)
+    a, b = straight.model.state_arrays(), resumed.model.state_arrays()
+    assert a.keys() == b.keys() and any(k.startswith("lst/") for k in a)
+    for key in a:
+        assert np.array_equal(a[key], b[key]), key
+    cloud, stage = export_cloud(straight.model)
+    assert (stage is None) == (config.lst_operator != "matrix")
+    assert np.allclose(cloud.sh_rest, straight.model.sh_rest(), atol=1e-5)
+
+
+def test_lst_variant_choices_match_the_module() -> None:
+    from gscodec_shac.commands import _options
+    from gscodec_shac.shac import lst_torch
+    from gscodec_shac.shac.lst import STRUCTURES, SUBSET_STRATEGIES
+
+    assert set(_options.LST_SUBSETS) == set(SUBSET_STRATEGIES)
+    assert set(_options.LST_OPERATORS) == set(lst_torch.OPERATORS)
+    assert set(_options.LST_STRUCTURES) == set(STRUCTURES)
+    assert set(_options.LST_RGB) == set(lst_torch.RGB_MODES)
+    assert set(_options.LST_INITS) == set(lst_torch.INITS)
+
+
 def test_bad_settings_raise(tiny_capture) -> None:
     with pytest.raises(TrainError, match="max-gaussians"):
         Trainer(tiny_capture, TrainConfig(iterations=10, strategy="mcmc"))
     with pytest.raises(TrainError, match="degree 2 or 3"):
         Trainer(tiny_capture, TrainConfig(iterations=10, sh="lst", sh_degree=1))
+    with pytest.raises(TrainError, match="mlp operator has no identity"):
+        Trainer(tiny_capture, TrainConfig(iterations=10, sh="lst", lst_operator="mlp", lst_init="identity"))
+    with pytest.raises(TrainError, match="lambda-t"):
+        Trainer(tiny_capture, TrainConfig(iterations=10, sh="lst", lambda_t=-1.0))
     with pytest.raises(CaptureError):
         load_capture("/nonexistent/capture")
 

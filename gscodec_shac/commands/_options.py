@@ -97,6 +97,35 @@ def add_threads(parser: argparse.ArgumentParser, what: str, default: str = "all 
     parser.add_argument("--threads", type=int, metavar="N", help=f"{what} (default: {default})")
 
 
+#: SHAC-LST variant choices (gscodec_shac.shac.lst_torch.LSTConfig validates them; kept here so that
+#: building the parser does not import torch; tests/test_train.py checks they agree).
+LST_SUBSETS = ("lowest", "highest")
+LST_OPERATORS = ("matrix", "vector", "linear", "mlp")
+LST_STRUCTURES = ("block", "dense")
+LST_RGB = ("joint", "separate")
+LST_INITS = ("zero", "identity")
+
+
+def add_lst_variant_options(container: argparse._ActionsContainer, *, lambda_t: bool = True) -> None:
+    """The SHAC-LST variant options (paper Sec. VII-E ablations; defaults = the paper's model):
+    ``--lst-subset``, ``--lst-operator``, ``--lst-structure``, ``--lst-rgb``, ``--lst-init`` and,
+    unless ``lambda_t=False``, ``--lambda-t`` (eq. 37)."""
+    container.add_argument("--lst-subset", choices=LST_SUBSETS, default="lowest",
+                           help="subset S: lowest degree l per order m (eq. 32, default) or highest (Table VII)")
+    container.add_argument("--lst-operator", choices=LST_OPERATORS, default="matrix",
+                           help="S -> A~ operator: matrix (T, default), vector, linear (with bias) or mlp "
+                           "(two hidden layers, Table VIII)")
+    container.add_argument("--lst-structure", choices=LST_STRUCTURES, default="block",
+                           help="matrix operator: block-diagonal T (eq. 34, default) or one dense map (Table IX)")
+    container.add_argument("--lst-rgb", choices=LST_RGB, default="joint",
+                           help="matrix operator: RGB predicted jointly (default) or per channel (Table IX)")
+    container.add_argument("--lst-init", choices=LST_INITS, default="zero",
+                           help="initial T: zero (default) or identity on same-order entries (Table IX)")
+    if lambda_t:
+        container.add_argument("--lambda-t", type=float, default=5e-3,
+                               help="weight of the eq. 36 scale regulariser on T (default 5e-3; 0 = off, Fig. 13)")
+
+
 def add_force(parser: argparse.ArgumentParser) -> None:
     """``--force``: replace existing outputs (inputs are never written over, even with it)."""
     parser.add_argument("--force", action="store_true",

@@ -24,6 +24,7 @@ from gscodec_shac.commands._options import (
     add_alias,
     add_command,
     add_force,
+    add_lst_variant_options,
     add_quiet,
     add_threads,
     add_up,
@@ -69,6 +70,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="scale penalty of the post-hoc starting fit (eq. 36 units; default 1e-6, "
                         "5e-3 recommended with --refit-subset)")
     parser.add_argument("--lambda-t", type=float, default=5e-3, help="weight of the eq. 36 scale term (default 5e-3)")
+    variant = parser.add_argument_group("SHAC-LST variant (defaults = the paper's model; ablations of Sec. VII-E)")
+    add_lst_variant_options(variant, lambda_t=False)
+    variant.add_argument("--start", choices=("posthoc", "module"), default="posthoc",
+                         help="starting point: the post-hoc ridge fit of T and S (default; matrix operator, joint "
+                         "RGB) or the module's own initialisation (--lst-init) with S = the subset columns")
     parser.add_argument("--freeze-dc", action="store_true", help="keep the DC colours fixed (default: trained at 2.5e-3)")
     parser.add_argument("--background", default="0,0,0", metavar="R,G,B",
                         help="background colour R,G,B in [0, 1] (default 0,0,0)")
@@ -156,21 +162,35 @@ def run(args: argparse.Namespace) -> int:
 
     if cloud.sh_degree < 2:
         raise GscodecError(f"{args.scene}: SHAC-LST fine-tuning needs SH degree 2-4, the model has degree {cloud.sh_degree}")
+    if args.start == "posthoc" and (args.lst_operator != "matrix" or args.lst_rgb != "joint" or args.lst_init != "zero"):
+        raise GscodecError("--start posthoc needs the matrix operator with joint RGB (its T is the post-hoc fit, so "
+                           "--lst-init does not apply); use --start module for this variant")
+    lst_config = LSTConfig(degree=cloud.sh_degree, lambda_t=args.lambda_t, subset=args.lst_subset,
+                           operator=args.lst_operator, structure=args.lst_structure, rgb=args.lst_rgb,
+                           init=args.lst_init)
     config = FinetuneConfig(
-        steps=args.steps, seed=args.seed, lst=LSTConfig(degree=cloud.sh_degree, lambda_t=args.lambda_t),
+        steps=args.steps, seed=args.seed, lst=lst_config, init=args.start,
         refit_subset=args.refit_subset, ridge=args.ridge, train_dc=not args.freeze_dc, background=tuple(background),
         cache_bytes=int(args.cache_gb * (1 << 30)), threads=threads,
     )
+    if lst_config.operator in ("linear", "mlp"):
+        import torch
+
+        torch.manual_seed(args.seed)  # torch's default initialisation of the linear / hidden MLP layers
     tuner = LstFinetuner(cloud, train, targets=targets, config=config)
     checkpoint = checkpoint_path_for(out)
     result = tuner.run(progress=not args.quiet, checkpoint=checkpoint, checkpoint_every=args.checkpoint_every,
                        resume=args.resume, log_path=log_path_for(out))
     ply_path, compact = tuner.save_outputs(out, meta={"source": str(args.scene)})
-    stage = tuner.to_stage()
+    if lst_config.operator == "matrix":
+        stage = tuner.to_stage()
+        n_features, side_bytes = stage.n_features, stage.state().nbytes()
+    else:  # ablation operators: no compact stage; count their float32 weights
+        n_features, side_bytes = tuner.module.d, 4 * tuner.module.n_params
     summary = {
         "scene": str(args.scene),
         "out": str(ply_path),
-        "compact": str(compact),
+        "compact": str(compact) if compact else None,
         "n_gaussians": cloud.num_gaussians,
         "train_views": len(train),
         "held_out_views": [c.name for c in held_out],
@@ -178,8 +198,8 @@ def run(args: argparse.Namespace) -> int:
         "resolution": [train[0].width, train[0].height],
         "config": tuner.fingerprint()["config"],
         "threads": threads,
-        "sh_floats_per_gaussian": 3 + stage.n_features,
-        "side_bytes": stage.state().nbytes(),
+        "sh_floats_per_gaussian": 3 + n_features,
+        "side_bytes": side_bytes,
         **result.summary(),
     }
     summary_path = summary_path_for(out)
@@ -190,7 +210,7 @@ def run(args: argparse.Namespace) -> int:
     loss_first, loss_last = summary["loss_first"], summary["loss_last_10pct_mean"]
     print(
         f"lst-finetune: {start}{result.steps} steps on {len(train)} views ({timing}, {result.wall_seconds:.0f} s), "
-        f"loss {loss_first:.4f} -> {loss_last:.4f}; wrote {ply_path} and {compact} "
-        f"({3 + stage.n_features} SH floats/Gaussian + {stage.state().nbytes()} B of T)"
+        f"loss {loss_first:.4f} -> {loss_last:.4f}; wrote {ply_path}" + (f" and {compact}" if compact else "")
+        + f" ({3 + n_features} SH floats/Gaussian + {side_bytes} B of T)"
     )
     return 0

@@ -15,7 +15,7 @@ import math
 import os
 from pathlib import Path
 
-from gscodec_shac.commands._options import add_command, add_force, add_threads
+from gscodec_shac.commands._options import add_command, add_force, add_lst_variant_options, add_threads
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -26,6 +26,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "SHAC-LST (S T, paper Sec. V-B). Every 8th view (name order) is held out for testing. OUT_DIR gets "
         "point_cloud.ply, cameras.json, metrics.json, run.json and checkpoint.npz (--resume continues it).",
         examples=["gscodec-shac train capture/ out/ --sh lst --iterations 3000 --max-gaussians 50000",
+                  "gscodec-shac train capture/ out_mlp/ --sh lst --lst-operator mlp --iterations 600",
                   "gscodec-shac train mipnerf360_bonsai/ bonsai/ --images images --resolution-scale 0.25"],
     )
     parser.add_argument("capture", metavar="CAPTURE_DIR", help="capture folder: COLMAP (sparse/0 + images), Inria "
@@ -33,6 +34,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("out_dir", metavar="OUT_DIR", help="output folder (created)")
     parser.add_argument("--sh", choices=("full", "lst"), default="full", help="SH parameterisation (default full)")
     parser.add_argument("--sh-degree", type=int, default=3, help="SH degree 0-3 (default 3; 2 = Train-L2-D24)")
+    lst = parser.add_argument_group("SHAC-LST variant (--sh lst; defaults = the paper's model; ablations of "
+                                    "Sec. VII-E, Tables VII-IX, Fig. 13)")
+    add_lst_variant_options(lst)
     parser.add_argument("--iterations", type=int, default=30_000, help="training iterations (default 30000); "
                         "the reference schedule's intervals are scaled by iterations/30000")
     parser.add_argument("--strategy", choices=("default", "mcmc"), default=None,
@@ -134,7 +138,9 @@ def run(args: argparse.Namespace) -> int:
         config = TrainConfig(
             iterations=args.iterations, sh=args.sh, sh_degree=args.sh_degree, strategy=strategy,
             max_gaussians=args.max_gaussians, seed=args.seed, lr_opacity=args.opacity_lr,
-            checkpoint_every=args.checkpoint_every,
+            checkpoint_every=args.checkpoint_every, lambda_t=args.lambda_t, lst_subset=args.lst_subset,
+            lst_operator=args.lst_operator, lst_structure=args.lst_structure, lst_rgb=args.lst_rgb,
+            lst_init=args.lst_init,
         )
         trainer = Trainer(capture, config)
         write_atomic(out / "run.json", json.dumps({

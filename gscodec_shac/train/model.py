@@ -96,7 +96,8 @@ class GaussianModel:
     """Parameters + Adam moments of a 3DGS model under training (see the module docstring)."""
 
     def __init__(
-        self, params: dict[str, np.ndarray], sh_degree: int, sh_mode: str = "full", lambda_t: float = LAMBDA_T
+        self, params: dict[str, np.ndarray], sh_degree: int, sh_mode: str = "full", lambda_t: float = LAMBDA_T,
+        lst_config: LSTConfig | None = None,
     ) -> None:
         if sh_mode not in ("full", "lst"):
             raise ValidationError(f"sh must be 'full' or 'lst', got {sh_mode!r}")
@@ -115,16 +116,30 @@ class GaussianModel:
         self.lst_exp_avg: dict[str, np.ndarray] = {}
         self.lst_exp_avg_sq: dict[str, np.ndarray] = {}
         if sh_mode == "lst":
-            self.lst = LSTModule(LSTConfig(degree=sh_degree, lambda_t=lambda_t))
-            for key, w in self.lst.weights.items():
+            if lst_config is None:
+                lst_config = LSTConfig(degree=sh_degree, lambda_t=lambda_t)
+            elif lst_config.degree != sh_degree:
+                raise ValidationError(f"the LST variant is for SH degree {lst_config.degree}, the model has {sh_degree}")
+            self.lst = LSTModule(lst_config)
+            for key, w in self.lst_parameters().items():
                 self.lst_exp_avg[key] = np.zeros(tuple(w.shape), dtype=np.float32)
                 self.lst_exp_avg_sq[key] = np.zeros(tuple(w.shape), dtype=np.float32)
 
     # ------------------------------------------------------------------ construction
+    def lst_parameters(self) -> dict[str, torch.nn.Parameter]:
+        """Learnable tensors of the LST operator by a stable name: the matrix/vector weights
+        under their block keys (``t2``, ``t3``, ``w``), linear/MLP layers as ``net.<name>``."""
+        if self.lst is None:
+            return {}
+        out = dict(self.lst.weights.items())
+        if self.lst.net is not None:
+            out.update({f"net.{name}": p for name, p in self.lst.net.named_parameters()})
+        return out
+
     @classmethod
     def from_points(
         cls, points: np.ndarray, colors: np.ndarray, sh_degree: int = 3, sh_mode: str = "full",
-        opacity: float = 0.1, lambda_t: float = LAMBDA_T,
+        opacity: float = 0.1, lambda_t: float = LAMBDA_T, lst_config: LSTConfig | None = None,
     ) -> "GaussianModel":
         """The reference initialisation: DC from the colours, higher SH 0, identity rotations,
         isotropic scales from :func:`init_scales`, opacity ``opacity``."""
@@ -142,7 +157,7 @@ class GaussianModel:
             params["sh_subset"] = np.zeros((n, 3 * (2 * sh_degree + 1)))
         else:
             params["sh_rest"] = np.zeros((n, sh_index.num_rest_coeffs(sh_degree), 3))
-        return cls(params, sh_degree, sh_mode, lambda_t)
+        return cls(params, sh_degree, sh_mode, lambda_t, lst_config)
 
     # ------------------------------------------------------------------ views
     @property
@@ -235,7 +250,7 @@ class GaussianModel:
             adam_update(self.params[k], grads[k], self.exp_avg[k], self.exp_avg_sq[k], lrs[k], self.step,
                         columns=columns.get(k))
         if self.lst is not None and lst_lr is not None:
-            for key, w in self.lst.weights.items():
+            for key, w in self.lst_parameters().items():
                 g = w.grad.numpy() if w.grad is not None else np.zeros(tuple(w.shape), dtype=np.float32)
                 adam_update(w.data.numpy(), np.ascontiguousarray(g), self.lst_exp_avg[key], self.lst_exp_avg_sq[key],
                             lst_lr, self.step)
@@ -250,7 +265,7 @@ class GaussianModel:
             out[f"m/{k}"] = self.exp_avg[k]
             out[f"v/{k}"] = self.exp_avg_sq[k]
         if self.lst is not None:
-            for key, w in self.lst.weights.items():
+            for key, w in self.lst_parameters().items():
                 out[f"lst/{key}"] = w.detach().numpy().copy()
                 out[f"lst_m/{key}"] = self.lst_exp_avg[key]
                 out[f"lst_v/{key}"] = self.lst_exp_avg_sq[key]
@@ -260,21 +275,23 @@ class GaussianModel:
         return {
             "sh_mode": self.sh_mode, "sh_degree": self.sh_degree, "step": self.step,
             "lambda_t": self.lst.config.lambda_t if self.lst is not None else LAMBDA_T,
+            "lst": self.lst.config.as_dict() if self.lst is not None else None,
         }
 
     @classmethod
     def from_state(cls, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> "GaussianModel":
         """Inverse of :meth:`state_arrays` + :meth:`meta`."""
         names = ROW_PARAMS_LST if meta["sh_mode"] == "lst" else ROW_PARAMS_FULL
+        lst_config = LSTConfig(**meta["lst"]) if meta.get("lst") else None
         model = cls({k: arrays[f"param/{k}"] for k in names}, int(meta["sh_degree"]), meta["sh_mode"],
-                    float(meta.get("lambda_t", LAMBDA_T)))
+                    float(meta.get("lambda_t", LAMBDA_T)), lst_config)
         for k in names:
             model.exp_avg[k] = np.ascontiguousarray(arrays[f"m/{k}"], dtype=np.float32)
             model.exp_avg_sq[k] = np.ascontiguousarray(arrays[f"v/{k}"], dtype=np.float32)
         model.step = int(meta["step"])
         if model.lst is not None:
             with torch.no_grad():
-                for key, w in model.lst.weights.items():
+                for key, w in model.lst_parameters().items():
                     w.copy_(torch.from_numpy(np.asarray(arrays[f"lst/{key}"], dtype=np.float32)))
                     model.lst_exp_avg[key] = np.ascontiguousarray(arrays[f"lst_m/{key}"], dtype=np.float32)
                     model.lst_exp_avg_sq[key] = np.ascontiguousarray(arrays[f"lst_v/{key}"], dtype=np.float32)

@@ -47,9 +47,9 @@ import gscodec_shac.render  # noqa: F401  (sets OMP_WAIT_POLICY before torch loa
 import torch  # noqa: E402
 
 from gscodec_shac import sh_index
-from gscodec_shac.errors import GscodecError
+from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac.render.backward import DiffRenderer
-from gscodec_shac.shac.lst_torch import LAMBDA_T, t_learning_rate
+from gscodec_shac.shac.lst_torch import LAMBDA_T, LSTConfig, t_learning_rate
 from gscodec_shac.train import densify as dens
 from gscodec_shac.train import mcmc
 from gscodec_shac.train.data import Capture
@@ -79,6 +79,12 @@ class TrainConfig:
     init_opacity: float = 0.1
     lambda_dssim: float = LAMBDA_DSSIM
     lambda_t: float = LAMBDA_T
+    # SHAC-LST variant (paper Sec. VII-E, Tables VII-IX; defaults = the paper's model)
+    lst_subset: str = "lowest"
+    lst_operator: str = "matrix"
+    lst_structure: str = "block"
+    lst_rgb: str = "joint"
+    lst_init: str = "zero"
     # learning rates
     lr_means: float = 1.6e-4
     lr_means_final: float = 1.6e-6
@@ -117,6 +123,13 @@ class TrainConfig:
             raise TrainError(f"--sh-degree must be 0-3, got {self.sh_degree}")
         if self.sh == "lst" and self.sh_degree < 2:
             raise TrainError("--sh lst needs --sh-degree 2 or 3")
+        if not (math.isfinite(self.lambda_t) and self.lambda_t >= 0):
+            raise TrainError(f"--lambda-t must be a number >= 0, got {self.lambda_t}")
+        if self.sh == "lst":
+            try:
+                self.lst_config()
+            except ValidationError as exc:
+                raise TrainError(f"SHAC-LST variant: {exc}") from None
         if self.strategy not in ("default", "mcmc"):
             raise TrainError(f"--strategy must be 'default' or 'mcmc', got {self.strategy!r}")
         if self.strategy == "mcmc" and not self.max_gaussians:
@@ -144,6 +157,13 @@ class TrainConfig:
             "refine_until": self.scaled(self.refine_until, 25_000),
             "refine_every": max(1, self.scaled(self.refine_every, 100)),
         }
+
+    def lst_config(self) -> LSTConfig:
+        """The :class:`LSTConfig` of an ``sh="lst"`` run (variant and ``lambda_t``)."""
+        return LSTConfig(
+            degree=self.sh_degree, subset=self.lst_subset, operator=self.lst_operator,
+            structure=self.lst_structure, rgb=self.lst_rgb, init=self.lst_init, lambda_t=self.lambda_t,
+        )
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -182,8 +202,12 @@ class Trainer:
         self.schedule = config.resolved()
         self.rng = np.random.default_rng(config.seed)
         if model is None:
+            lst_config = config.lst_config() if config.sh == "lst" else None
+            if lst_config is not None and lst_config.operator in ("linear", "mlp"):
+                torch.manual_seed(config.seed)  # torch's default init of the linear / hidden MLP layers
             model = GaussianModel.from_points(
-                capture.points, capture.colors, config.sh_degree, config.sh, config.init_opacity, config.lambda_t
+                capture.points, capture.colors, config.sh_degree, config.sh, config.init_opacity, config.lambda_t,
+                lst_config,
             )
             if config.max_gaussians is not None and model.num_gaussians > config.max_gaussians:
                 keep = np.sort(self.rng.choice(model.num_gaussians, config.max_gaussians, replace=False))
@@ -456,12 +480,15 @@ def model_sizes(model: GaussianModel) -> dict[str, Any]:
 
 def export_cloud(model: GaussianModel):
     """``(cloud, stage or None)``: the model as a full-SH :class:`GaussianCloud`; for SHAC-LST the
-    AC matrix is ``ShacLST.inverse_transform(S)`` so that the compact form rebuilds it exactly."""
+    AC matrix is ``ShacLST.inverse_transform(S)`` so that the compact form rebuilds it exactly
+    (the ablation operators vector/linear/mlp of Table VIII have no stage: ``S T`` by the module)."""
     from gscodec_shac.gaussians import GaussianCloud
 
     p = model.params
     stage = None
-    if model.sh_mode == "lst":
+    if model.sh_mode == "lst" and model.lst.config.operator != "matrix":
+        rest = model.sh_rest()  # linear / MLP / vector ablation operators: no compact stage form
+    elif model.sh_mode == "lst":
         stage = model.lst_stage()
         rest = sh_index.sh_rest_from_ac(stage.inverse_transform(p["sh_subset"]))
     else:
@@ -548,5 +575,10 @@ def write_outputs(
 def method_label(model: GaussianModel) -> str:
     """The paper's "{method}-L{degree}-D{AC dims}" label (Table II)."""
     if model.sh_mode == "lst":
-        return f"SHAC-LST-L{model.sh_degree}-D{model.params['sh_subset'].shape[1]}"
+        label = f"SHAC-LST-L{model.sh_degree}-D{model.params['sh_subset'].shape[1]}"
+        c, paper = model.lst.config, LSTConfig(degree=model.sh_degree)
+        changed = [f"{k}={v}" for k, v in c.as_dict().items() if k not in ("degree", "lambda_t") and v != getattr(paper, k)]
+        if c.lambda_t != paper.lambda_t:
+            changed.append(f"lambda_t={c.lambda_t:g}")
+        return label + (f" ({', '.join(changed)})" if changed else "")
     return f"Train-L{model.sh_degree}-D{3 * sh_index.num_rest_coeffs(model.sh_degree)}"
