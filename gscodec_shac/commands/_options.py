@@ -97,6 +97,24 @@ def add_threads(parser: argparse.ArgumentParser, what: str, default: str = "all 
     parser.add_argument("--threads", type=int, metavar="N", help=f"{what} (default: {default})")
 
 
+def add_training_run_options(parser: argparse.ArgumentParser, *, on_stop: str, evaluated: str) -> None:
+    """The run options every trainer command shares: seed, checkpoints, resume, time budget,
+    threads, evaluation switch, quiet and ``--force``. ``on_stop`` says what a budget stop
+    writes; ``evaluated`` names the held-out images."""
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--checkpoint-every", type=int, default=500, metavar="N", help="checkpoint every N "
+                        "iterations (default 500)")
+    parser.add_argument("--resume", action="store_true", help="continue from OUT_DIR's checkpoint (its settings "
+                        "are used)")
+    parser.add_argument("--time-budget", type=float, metavar="SECONDS", help="stop training after this many "
+                        f"seconds of this run ({on_stop}; --resume continues)")
+    add_threads(parser, "numba threads of the rasteriser")
+    parser.add_argument("--no-eval", action="store_true", help=f"skip the {evaluated} evaluation")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars: a JSON log line every 100 "
+                        "steps instead (also when stderr is not a terminal)")
+    add_force(parser)
+
+
 #: SHAC-LST variant choices (gscodec_shac.shac.lst_torch.LSTConfig validates them; kept here so that
 #: building the parser does not import torch; tests/test_train.py checks they agree).
 LST_SUBSETS = ("lowest", "highest")

@@ -15,7 +15,7 @@ import math
 import os
 from pathlib import Path
 
-from gscodec_shac.commands._options import add_command, add_force, add_lst_variant_options, add_threads
+from gscodec_shac.commands._options import add_command, add_lst_variant_options, add_training_run_options
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -57,18 +57,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "NeRF-synthetic, else black)")
     parser.add_argument("--opacity-lr", type=float, default=0.05, help="opacity learning rate (default 0.05 as "
                         "the original 3DGS; newer releases use 0.025)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--checkpoint-every", type=int, default=500, metavar="N", help="checkpoint every N "
-                        "iterations (default 500)")
-    parser.add_argument("--resume", action="store_true", help="continue from OUT_DIR/checkpoint.npz (the "
-                        "checkpoint's settings are used)")
-    parser.add_argument("--time-budget", type=float, metavar="SECONDS", help="stop training after this many "
-                        "seconds of this run (checkpoint written; --resume continues)")
-    add_threads(parser, "numba threads of the rasteriser")
-    parser.add_argument("--no-eval", action="store_true", help="skip the test-view evaluation")
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars: a JSON log line every 100 "
-                        "steps instead (also when stderr is not a terminal)")
-    add_force(parser)
+    add_training_run_options(parser, on_stop="checkpoint written", evaluated="test-view")
     parser.set_defaults(func=run)
 
 

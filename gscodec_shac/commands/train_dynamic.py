@@ -13,7 +13,7 @@ import argparse
 import os
 from pathlib import Path
 
-from gscodec_shac.commands._options import add_command, add_force, add_threads
+from gscodec_shac.commands._options import add_command, add_training_run_options
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -54,18 +54,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        ("opacity-reset-interval", "iterations between opacity resets (reference 3000)"),
                        ("sh-interval", "iterations between SH degree increases (reference 1000)")):
         parser.add_argument(f"--{name}", type=int, metavar="N", help=f"{text}; default: scaled")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--checkpoint-every", type=int, default=500, metavar="N", help="checkpoint every N "
-                        "iterations (default 500)")
-    parser.add_argument("--resume", action="store_true", help="continue from OUT_DIR's checkpoint (its settings "
-                        "are used)")
-    parser.add_argument("--time-budget", type=float, metavar="SECONDS", help="stop training after this many "
-                        "seconds of this run (the model is written from the state reached; --resume continues)")
-    add_threads(parser, "numba threads of the rasteriser")
-    parser.add_argument("--no-eval", action="store_true", help="skip the test-frame evaluation")
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars: a JSON log line every 100 "
-                        "steps instead")
-    add_force(parser)
+    add_training_run_options(parser, on_stop="the model is written from the state reached", evaluated="test-frame")
     parser.set_defaults(func=run)
 
 
