@@ -28,6 +28,7 @@ import io
 import json
 import os
 import secrets
+import stat
 import threading
 from pathlib import Path
 from typing import Any, BinaryIO, Iterable, Iterator
@@ -38,13 +39,19 @@ from gscodec_shac.errors import GscodecError, OutputError
 
 #: Files this process reads and must never write over (see :func:`protect_inputs`).
 _PROTECTED: dict[tuple[int, int], str] = {}
+#: The most files of one input folder registered (a model folder holds a handful).
+_MAX_MEMBERS = 10_000
 _UMASK_LOCK = threading.Lock()
 #: OS errors of writing a file that are the environment's, not a bug: reported as one line.
 _WRITE_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO}
 
 
 def protect_inputs(*paths: str | os.PathLike | None) -> None:
-    """Register input files: no atomic output of this process may replace them."""
+    """Register input files: no atomic output of this process may replace them.
+
+    A multi-file input is every file it reads: a folder registers the files inside it (a SOG
+    folder's images, a dynamic model's members), a SOG ``meta.json`` the images it names.
+    """
     for path in paths:
         if path is None:
             continue
@@ -53,6 +60,26 @@ def protect_inputs(*paths: str | os.PathLike | None) -> None:
         except OSError:
             continue
         _PROTECTED[(info.st_dev, info.st_ino)] = str(path)
+        for member in _members(Path(path), info):
+            try:
+                member_info = os.stat(member)
+            except OSError:
+                continue
+            _PROTECTED.setdefault((member_info.st_dev, member_info.st_ino), str(member))
+
+
+def _members(path: Path, info: os.stat_result) -> list[Path]:
+    """The files a folder input holds, or that a SOG ``meta.json`` input names beside it."""
+    if stat.S_ISDIR(info.st_mode):
+        try:
+            return [entry for entry in path.iterdir() if entry.is_file()][:_MAX_MEMBERS]
+        except OSError:
+            return []
+    if path.suffix.lower() == ".json" and stat.S_ISREG(info.st_mode):
+        from gscodec_shac.io.sog import sog_files
+
+        return sog_files(path)
+    return []
 
 
 @contextlib.contextmanager
@@ -81,7 +108,7 @@ def check_output(path: str | os.PathLike, *, force: bool = False, inputs: Iterab
     if path.is_dir():
         raise OutputError(f"{path}: the {what} path is a directory; give a file name")
     _refuse_input(path, OutputError)
-    if path.exists() and not force:
+    if _occupied(path) and not force:
         raise OutputError(f"{path}: the {what} exists; pass --force to replace it")
     directory = path.parent if str(path.parent) else Path(".")
     if not directory.is_dir():
@@ -96,7 +123,7 @@ def check_outputs(paths: Iterable[str | os.PathLike], *, force: bool = False, wh
         if path.is_dir():
             raise OutputError(f"{path}: the {what} path is a directory")
         _refuse_input(path, OutputError)
-        if path.exists() and not force:
+        if _occupied(path) and not force:
             raise OutputError(f"{path}: the {what} exists; pass --force to replace it")
 
 
@@ -172,6 +199,11 @@ def umask() -> int:
 
 
 # ------------------------------------------------------------------ internals
+def _occupied(path: Path) -> bool:
+    """Whether something is at ``path``: a file, or a symlink (even one whose target is missing)."""
+    return path.exists() or path.is_symlink()
+
+
 def _refuse_input(path: Path, error: type[Exception]) -> None:
     try:
         info = os.stat(path)

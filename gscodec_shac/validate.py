@@ -17,10 +17,16 @@ Rate points, sweep specifications, RD method parameters, SH stage parameters and
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
 from typing import Any, Iterable, Mapping, Sequence
 
 from gscodec_shac.errors import GscodecError
+
+#: The largest finite float64, as an exact integer (huge JSON integers are compared with it).
+_FLOAT64_MAX = int(sys.float_info.max)
+#: The longest problem text of an error (values quoted from the document are cut in the middle).
+_MAX_PROBLEM = 300
 
 
 @dataclass(frozen=True)
@@ -37,7 +43,10 @@ class Where:
 
     # -------------------------------------------------------------- errors
     def error(self, key: str, problem: str) -> GscodecError:
-        """The error to raise: ``source: context: key 'k': problem``."""
+        """The error to raise: ``source: context: key 'k': problem`` (a problem quoting a long
+        hostile value is shortened in the middle)."""
+        if len(problem) > _MAX_PROBLEM:
+            problem = f"{problem[:_MAX_PROBLEM - 60]} ... {problem[-50:]}"
         parts = [p for p in (self.source, self.context) if p]
         if key:
             parts.append(f"key {key!r}")
@@ -56,17 +65,18 @@ class Where:
         """An integer (not a bool) in ``lo..hi`` (no upper bound when ``hi`` is None)."""
         if isinstance(value, bool) or not isinstance(value, int) or value < lo or (hi is not None and value > hi):
             bound = f"in {lo}..{hi}" if hi is not None else f">= {lo}"
-            raise self.error(key, f"must be an integer {bound}, got {value!r}")
+            raise self.error(key, f"must be an integer {bound}, got {shown(value)}")
         return value
 
     def number(self, value: Any, key: str, lo: float = -math.inf, hi: float = math.inf, *, open_lo: bool = False) -> float:
-        """A finite number in ``[lo, hi]`` (``(lo, hi]`` with ``open_lo``)."""
+        """A finite number in ``[lo, hi]`` (``(lo, hi]`` with ``open_lo``); an integer of any size
+        is compared exactly and must also fit a float64."""
         ok = (
-            not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
+            not isinstance(value, bool) and isinstance(value, (int, float)) and _fits_float(value)
             and (lo < value if open_lo else lo <= value) and value <= hi
         )
         if not ok:
-            raise self.error(key, f"must be a number in {'(' if open_lo else '['}{lo:g}, {hi:g}], got {value!r}")
+            raise self.error(key, f"must be a number in {'(' if open_lo else '['}{lo:g}, {hi:g}], got {shown(value)}")
         return float(value)
 
     def boolean(self, value: Any, key: str) -> bool:
@@ -104,9 +114,25 @@ class Where:
         """Three finite numbers in ``[lo, hi]``."""
         if (
             not isinstance(value, (list, tuple)) or len(value) != 3
-            or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not lo <= v <= hi
+            or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not _fits_float(v) or not lo <= v <= hi
                    for v in value)
         ):
             bounds = f" in [{lo:g}, {hi:g}]" if math.isfinite(lo) else ""
             raise self.error(key, f"must be a list of 3 numbers{bounds}, got {value!r}")
         return (float(value[0]), float(value[1]), float(value[2]))
+
+
+def _fits_float(value: int | float) -> bool:
+    """Whether a number is finite as a float64 (a huge integer is not; no OverflowError)."""
+    if isinstance(value, int):
+        return -_FLOAT64_MAX <= value <= _FLOAT64_MAX
+    return math.isfinite(value)
+
+
+def shown(value: Any, limit: int = 60) -> str:
+    """``repr(value)`` for a message, shortened (a 400-digit integer becomes ``1234...(400 digits)``)."""
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) >= 10**limit:
+        digits = len(str(abs(value))) if abs(value).bit_length() < 14_000 else None
+        return f"an integer of {digits:,} digits" if digits else "an integer of more than 4,000 digits"
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit - 3]}..."

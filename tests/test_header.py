@@ -196,3 +196,41 @@ def test_streams_of_every_shipped_rate_point_are_accepted(cloud, point):
     view = read_header(Bitstream.from_bytes(stream.to_bytes()))
     assert view.rate_point == point and sum(view.chunk_bytes.values()) == sum(len(c.data) for c in stream.chunks)
     assert Decoder().decode(stream).num_gaussians == view.num_gaussians
+
+
+def _numeric_paths(value, prefix=()):
+    """Every path to a number (not a bool) inside a parsed JSON header."""
+    items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+    out = []
+    for key, child in items:
+        if isinstance(child, (int, float)) and not isinstance(child, bool):
+            out.append(prefix + (key,))
+        out.extend(_numeric_paths(child, prefix + (key,)))
+    return out
+
+
+@pytest.mark.parametrize("source", ["encoded", "v2.0"])
+def test_a_400_digit_integer_in_every_numeric_header_field_is_one_clean_error(encoded, source):
+    """JSON allows integers of any size; each numeric header field holding 10**400 (or -10**400)
+    ends in a valid result or one BitstreamError for decode and info, never an OverflowError."""
+    import json
+
+    from gscodec_shac.fuzz import _pack, _split
+
+    data = encoded if source == "encoded" else next(iter(sorted((FIXTURES / "v2.0").glob("*.gsc")))).read_bytes()
+    text, payloads, version = _split(data)
+    header = json.loads(text)
+    paths = _numeric_paths(header)
+    assert len(paths) > 50
+    for sign, path in zip([1, -1] * len(paths), paths):
+        edited = json.loads(text)
+        parent = edited
+        for key in path[:-1]:
+            parent = parent[key]
+        parent[path[-1]] = sign * 10**400
+        case = _pack(json.dumps(edited).encode(), payloads, resign_table=False, version=version)
+        for target in (lambda b: Decoder(workers=1).decode(b), lambda b: describe_gsc(Bitstream.from_bytes(b), "x")):
+            try:
+                target(case)
+            except BitstreamError as exc:
+                assert len(str(exc)) < 400, str(exc)

@@ -117,17 +117,12 @@ def report_notes(notes: list[str], stream: TextIO | None = None) -> None:
 def model_bytes(path: str | os.PathLike) -> int:
     """Bytes a model occupies: the file, or for a SOG ``meta.json`` or folder, it and its images."""
     path = Path(path)
-    from gscodec_shac.io.sog import find_sog_meta
+    from gscodec_shac.io.sog import find_sog_meta, sog_files
 
     meta = find_sog_meta(path)
     if meta is None:
         return path.stat().st_size
-    import json
-
-    files = {meta}
-    for section in json.loads(meta.read_text(encoding="utf-8")).values():
-        if isinstance(section, dict) and isinstance(section.get("files"), list):
-            files |= {meta.parent / str(name) for name in section["files"]}
+    files = {meta, *sog_files(meta)}
     return sum(f.stat().st_size for f in files if f.is_file())
 
 

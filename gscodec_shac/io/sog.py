@@ -34,7 +34,6 @@ import io
 import json
 import os
 import zipfile
-import zlib
 from pathlib import Path
 from typing import Any, Callable
 
@@ -42,8 +41,13 @@ import numpy as np
 
 from gscodec_shac import sh_index
 from gscodec_shac.atomic import write_atomic
-from gscodec_shac.errors import ModelFormatError
+from gscodec_shac.errors import GscodecError, ModelFormatError
 from gscodec_shac.gaussians import GaussianCloud
+from gscodec_shac.io.bounded import (
+    MAX_MODEL_JSON_BYTES, READ_COPIES, BoundedZip, check_memory, cloud_bytes, decode_rgba, load_json, member_path,
+    read_file,
+)
+from gscodec_shac.limits import MAX_GAUSSIANS
 from gscodec_shac.io.model_common import (
     check_rows, logits_from_alpha, note, sigmoid, to_uint8, unit_quats, zero_sh_rest,
 )
@@ -53,6 +57,11 @@ SQRT2 = np.sqrt(2.0)
 _QUAT_SLOTS = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
 _SH_COEFFS = {1: 3, 2: 8, 3: 15}
 _PALETTE_COLUMNS = 64
+#: The largest SH palette (labels are 16 bits) and the most members a ``.sog`` zip may hold.
+_MAX_PALETTE = 1 << 16
+_MAX_MEMBERS = 64
+#: Texels an image may have beyond twice the Gaussian count (small scenes, padding).
+_SLACK_TEXELS = 1 << 16
 
 
 def is_sog_meta(data: Any) -> bool:
@@ -67,9 +76,30 @@ def find_sog_meta(path: str | os.PathLike) -> Path | None:
     if candidate.suffix.lower() != ".json" or not candidate.is_file():
         return None
     try:
-        return candidate if is_sog_meta(json.loads(candidate.read_text(encoding="utf-8"))) else None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return candidate if is_sog_meta(load_json(read_file(candidate, MAX_MODEL_JSON_BYTES, "JSON"), str(candidate))) \
+            else None
+    except GscodecError:
         return None
+
+
+def sog_files(meta_path: str | os.PathLike) -> list[Path]:
+    """The files a SOG ``meta.json`` names beside it (the images an unbundled SOG reads), checked
+    to stay inside its folder; [] when the document is unreadable."""
+    meta_path = Path(meta_path)
+    try:
+        meta = load_json(read_file(meta_path, MAX_MODEL_JSON_BYTES, "JSON"), str(meta_path))
+    except GscodecError:
+        return []
+    names = [name for section in (meta.values() if isinstance(meta, dict) else ())
+             if isinstance(section, dict) and isinstance(section.get("files"), list)
+             for name in section["files"] if isinstance(name, str)]
+    out = []
+    for name in names:
+        try:
+            out.append(member_path(meta_path.parent, name, str(meta_path)))
+        except GscodecError:
+            continue
+    return out
 
 
 def read_sog(path: str | os.PathLike) -> GaussianCloud:
@@ -78,42 +108,45 @@ def read_sog(path: str | os.PathLike) -> GaussianCloud:
     if not path.exists():
         raise ModelFormatError(f"{path}: no such SOG file or folder")
     if path.is_file() and zipfile.is_zipfile(path):
-        try:
-            with zipfile.ZipFile(path) as bundle:
-                names = {Path(name).name: name for name in bundle.namelist()}
-                if "meta.json" not in names:
-                    raise ModelFormatError(f"{path}: a zip without meta.json is not a SOG bundle")
-                meta = _parse_meta(path, bundle.read(names["meta.json"]))
+        with BoundedZip(path, max_members=_MAX_MEMBERS) as bundle:
+            names: dict[str, str] = {}
+            for name in bundle.names():
+                if Path(name).name in names:
+                    raise ModelFormatError(f"{path}: the SOG bundle holds two members named {Path(name).name}")
+                names[Path(name).name] = name
+            if "meta.json" not in names:
+                raise ModelFormatError(f"{path}: a zip without meta.json is not a SOG bundle")
+            where = f"{path}: member 'meta.json'"
+            meta = _parse_meta(where, bundle.read(names["meta.json"], MAX_MODEL_JSON_BYTES, "SOG meta.json"))
 
-                def load(name: str) -> bytes:
-                    if name not in names:
-                        raise ModelFormatError(f"{path}: the SOG bundle lacks {name}")
-                    return bundle.read(names[name])
+            def load(name: str, limit: int) -> bytes:
+                if name not in names:
+                    raise ModelFormatError(f"{path}: the SOG bundle lacks {name}")
+                return bundle.read(names[name], limit, "SOG image")
 
-                return _decode(path, meta, load)
-        except (zipfile.BadZipFile, zlib.error, OSError) as exc:
-            raise ModelFormatError(f"{path}: corrupt SOG bundle ({exc})") from None
+            return _decode(path, meta, load)
     meta_path = path / "meta.json" if path.is_dir() else path
     if not meta_path.is_file():
         raise ModelFormatError(f"{path}: no meta.json in this folder, so it is not a SOG scene")
-    meta = _parse_meta(meta_path, meta_path.read_bytes())
+    meta = _parse_meta(str(meta_path), read_file(meta_path, MAX_MODEL_JSON_BYTES, "SOG meta.json"))
 
-    def load_file(name: str) -> bytes:
-        file = meta_path.parent / name
+    def load_file(name: str, limit: int) -> bytes:
+        file = member_path(meta_path.parent, name, str(meta_path))
         if not file.is_file():
             raise ModelFormatError(f"{meta_path}: names {name}, which does not exist beside it")
-        return file.read_bytes()
+        return read_file(file, limit, "SOG image")
 
     return _decode(meta_path, meta, load_file)
 
 
 # ------------------------------------------------------------------ decoding
-def _decode(path: Path, meta: dict[str, Any], load: Callable[[str], bytes]) -> GaussianCloud:
+def _decode(path: Path, meta: dict[str, Any], load: Callable[[str, int], bytes]) -> GaussianCloud:
     n = meta["count"]
+    texels = _max_texels(n)
 
     def image(section: str, index: int) -> np.ndarray:
         name = _files(path, meta, section)[index]
-        return _texels(path, name, load(name), n)
+        return _texels(path, name, load(name, _image_bytes(texels)), n, texels)
 
     lo, hi = image("means", 0), image("means", 1)
     mins, maxs = (np.asarray(_numbers(path, meta["means"], key, 3), dtype=np.float64) for key in ("mins", "maxs"))
@@ -151,14 +184,14 @@ def _decode_quats(path: Path, texels: np.ndarray) -> np.ndarray:
     return quats
 
 
-def _decode_sh_rest(path: Path, meta: dict[str, Any], load: Callable[[str], bytes], n: int) -> np.ndarray:
+def _decode_sh_rest(path: Path, meta: dict[str, Any], load: Callable[[str, int], bytes], n: int) -> np.ndarray:
     section = meta.get("shN")
     if section is None:
         return zero_sh_rest(n)
     if not isinstance(section, dict):
         raise ModelFormatError(f"{path}: key 'shN' must be an object")
     bands = section.get("bands")
-    if bands not in _SH_COEFFS:
+    if not isinstance(bands, int) or isinstance(bands, bool) or bands not in _SH_COEFFS:
         raise ModelFormatError(f"{path}: key 'shN.bands' must be 1, 2 or 3, got {bands!r}")
     k = _SH_COEFFS[bands]
     book = np.asarray(_numbers(path, section, "codebook", 256), dtype=np.float32)
@@ -166,8 +199,10 @@ def _decode_sh_rest(path: Path, meta: dict[str, Any], load: Callable[[str], byte
     if not isinstance(palette_size, int) or palette_size < 1:
         raise ModelFormatError(f"{path}: key 'shN.count' must be a positive integer, got {palette_size!r}")
     names = _files(path, meta, "shN", 2)
-    centroids = _rgba(path, names[0], load(names[0]))
-    labels_img = _texels(path, names[1], load(names[1]), n)
+    palette_pixels = _PALETTE_COLUMNS * k * (-(-min(palette_size, _MAX_PALETTE) // _PALETTE_COLUMNS) + 1)
+    centroids = decode_rgba(load(names[0], _image_bytes(palette_pixels)), f"{path}: {names[0]}", palette_pixels)
+    texels = _max_texels(n)
+    labels_img = _texels(path, names[1], load(names[1], _image_bytes(texels)), n, texels)
     if centroids.shape[1] != _PALETTE_COLUMNS * k:
         raise ModelFormatError(
             f"{path}: {names[0]} is {centroids.shape[1]} texels wide; {bands} SH band(s) need {_PALETTE_COLUMNS * k}"
@@ -185,26 +220,40 @@ def _decode_sh_rest(path: Path, meta: dict[str, Any], load: Callable[[str], byte
 
 
 # ------------------------------------------------------------------ parsing
-def _parse_meta(path: Path, raw: bytes) -> dict[str, Any]:
-    try:
-        meta = json.loads(raw.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ModelFormatError(f"{path}: not a SOG meta.json (invalid JSON: {exc})") from None
+def _parse_meta(where: str, raw: bytes) -> dict[str, Any]:
+    meta = load_json(raw, where)
     if not is_sog_meta(meta):
-        raise ModelFormatError(f"{path}: not a SOG meta.json (needs means, scales, quats and sh0)")
+        raise ModelFormatError(f"{where}: not a SOG meta.json (needs means, scales, quats and sh0)")
     version = meta.get("version")
     if version is None:
-        raise ModelFormatError(f"{path}: SOG version 1 (no 'version' key) is not supported; re-save it as version 2")
-    if version != 2:
-        raise ModelFormatError(f"{path}: SOG version {version!r} is not supported (2 is)")
+        raise ModelFormatError(f"{where}: SOG version 1 (no 'version' key) is not supported; re-save it as version 2")
+    if version != 2 or isinstance(version, bool):
+        raise ModelFormatError(f"{where}: SOG version {version!r} is not supported (2 is)")
     count = meta.get("count")
     if not isinstance(count, int) or isinstance(count, bool):
-        raise ModelFormatError(f"{path}: key 'count' must be an integer, got {count!r}")
-    check_rows(path, count, "SOG scene")
+        raise ModelFormatError(f"{where}: key 'count' must be an integer, got {count!r}")
+    check_rows(where, count, "SOG scene")
+    if count > MAX_GAUSSIANS:
+        raise ModelFormatError(f"{where}: key 'count': {count:,} Gaussians (at most {MAX_GAUSSIANS:,})")
     for section in ("means", "scales", "quats", "sh0"):
         if not isinstance(meta[section], dict):
-            raise ModelFormatError(f"{path}: key {section!r} must be an object")
+            raise ModelFormatError(f"{where}: key {section!r} must be an object")
+    shn = meta.get("shN")
+    bands = shn.get("bands") if isinstance(shn, dict) else None
+    degree = bands if isinstance(bands, int) and not isinstance(bands, bool) and bands in _SH_COEFFS else 0
+    check_memory(where, READ_COPIES * cloud_bytes(count, degree) + 6 * 8 * _max_texels(count),
+                 f"reading {count:,} Gaussians")
     return meta
+
+
+def _max_texels(n: int) -> int:
+    """The most texels an image of ``n`` Gaussians may have (the writer's layout needs n + O(sqrt n))."""
+    return 2 * n + _SLACK_TEXELS
+
+
+def _image_bytes(pixels: int) -> int:
+    """The most bytes a PNG or WebP of ``pixels`` RGBA texels needs, stored without compression."""
+    return 5 * pixels + (1 << 20)
 
 
 def _files(path: Path, meta: dict[str, Any], section: str, count: int | None = None) -> list[str]:
@@ -225,29 +274,12 @@ def _numbers(path: Path, section: dict[str, Any], key: str, count: int) -> list[
     return values
 
 
-def _rgba(path: Path, name: str, data: bytes) -> np.ndarray:
-    """Decode a WebP (or any image OpenCV reads) into (H, W, 4) RGBA uint8."""
-    import cv2
-
-    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None or image.dtype != np.uint8 or image.ndim not in (2, 3):
-        raise ModelFormatError(f"{path}: {name} cannot be decoded as an 8-bit image")
-    if image.ndim == 2:
-        image = cv2.cvtColor(image, cv2.COLOR_GRAY2RGBA)
-    elif image.shape[2] == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGBA)
-    else:
-        image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGBA)
-    return image
-
-
-def _texels(path: Path, name: str, data: bytes, n: int) -> np.ndarray:
+def _texels(path: Path, name: str, data: bytes, n: int, max_texels: int) -> np.ndarray:
     """The first ``n`` texels (row-major) of an image, (n, 4) RGBA."""
-    image = _rgba(path, name, data)
+    image = decode_rgba(data, f"{path}: {name}", max_texels)
     if image.shape[0] * image.shape[1] < n:
         raise ModelFormatError(f"{path}: {name} has {image.shape[0] * image.shape[1]:,} texels, fewer than count {n:,}")
     return image.reshape(-1, 4)[:n]
-
 
 
 # ------------------------------------------------------------------ writing

@@ -35,7 +35,6 @@ from __future__ import annotations
 import gzip
 import os
 import struct
-import zlib
 
 import numpy as np
 
@@ -43,8 +42,10 @@ from gscodec_shac import sh_index
 from gscodec_shac.atomic import write_atomic
 from gscodec_shac.errors import ModelFormatError
 from gscodec_shac.gaussians import GaussianCloud
+from gscodec_shac.io.bounded import DEFLATE_MAX_RATIO, READ_COPIES, Inflater, check_memory, cloud_bytes, read_file
+from gscodec_shac.limits import MAX_GAUSSIANS, memory_budget
 from gscodec_shac.io.model_common import (
-    check_rows, flip_axes, logits_from_alpha, note, read_bytes, round_half_away, sigmoid, to_uint8, unit_quats,
+    check_rows, flip_axes, logits_from_alpha, note, round_half_away, sigmoid, to_uint8, unit_quats,
 )
 
 MAGIC = 0x5053474E  # "NGSP"
@@ -59,13 +60,9 @@ _COORDINATES = ("rub", "raw")
 def read_spz(path: str | os.PathLike, *, coordinates: str = "rub") -> GaussianCloud:
     """Read an SPZ file (see the module docstring) into a :class:`GaussianCloud` in RDF axes."""
     _check_coordinates(coordinates)
-    raw = read_bytes(path, "SPZ")
+    raw = read_file(path, memory_budget(), "SPZ")
     if raw[:2] == b"\x1f\x8b":
-        try:
-            data = gzip.decompress(raw)
-        except (OSError, EOFError, zlib.error) as exc:
-            raise ModelFormatError(f"{path}: corrupt or truncated SPZ (gzip: {exc})") from None
-        cloud = _unpack_legacy(path, data)
+        cloud = _unpack_legacy(path, raw)
     elif raw[:4] == struct.pack("<I", MAGIC):
         cloud = _unpack_v4(path, raw)
     else:
@@ -119,25 +116,36 @@ def write_spz(
 
 
 # ------------------------------------------------------------------ reading
-def _unpack_legacy(path: str | os.PathLike, data: bytes) -> GaussianCloud:
-    if len(data) < _LEGACY_HEADER.size:
-        raise ModelFormatError(f"{path}: truncated SPZ (no 16-byte header)")
-    magic, version, n, degree, fractional_bits, flags, _ = _LEGACY_HEADER.unpack_from(data)
+def _unpack_legacy(path: str | os.PathLike, raw: bytes) -> GaussianCloud:
+    """Versions 1-3: the gzip stream is inflated header first, then exactly the bytes the
+    header's count needs, and not one byte more (unless the extensions flag says more follows)."""
+    gz = Inflater(raw, f"{path}: corrupt or truncated SPZ (gzip)", wbits=31)
+    header = gz.read(_LEGACY_HEADER.size)
+    magic, version, n, degree, fractional_bits, flags, _ = _LEGACY_HEADER.unpack_from(header)
     if magic != MAGIC:
         raise ModelFormatError(f"{path}: not an SPZ file (bad magic {magic:#010x})")
     if version not in (1, 2, 3):
         raise ModelFormatError(f"{path}: gzip SPZ of version {version} is not supported (1-3 are)")
     _check_header(path, n, degree)
     sizes = _stream_sizes(n, degree, version)
-    needed = _LEGACY_HEADER.size + sum(sizes)
-    if len(data) < needed:
-        raise ModelFormatError(f"{path}: truncated SPZ ({len(data):,} bytes after gzip, {needed:,} needed for {n:,} Gaussians)")
-    streams, offset = [], _LEGACY_HEADER.size
+    needed = sum(sizes)
+    if _LEGACY_HEADER.size + needed > DEFLATE_MAX_RATIO * len(raw):
+        raise ModelFormatError(f"{path}: truncated SPZ: {n:,} Gaussians need {needed:,} bytes, more than "
+                               f"{len(raw):,} gzip bytes can hold")
+    check_memory(str(path), _read_memory(n, degree, needed), f"reading {n:,} Gaussians")
+    try:
+        data = gz.read(needed)
+    except ModelFormatError:
+        raise ModelFormatError(f"{path}: truncated SPZ (the gzip data ends before the {needed:,} bytes "
+                               f"{n:,} Gaussians need)") from None
+    if flags & 0x2:
+        note(f"{path}: SPZ extensions are ignored")
+    else:
+        gz.finish()
+    streams, offset = [], 0
     for size in sizes:
         streams.append(np.frombuffer(data, dtype=np.uint8, count=size, offset=offset))
         offset += size
-    if flags & 0x2:
-        note(f"{path}: SPZ extensions ({len(data) - needed:,} bytes) are ignored")
     return _unpack(path, n, degree, fractional_bits, version, streams)
 
 
@@ -156,6 +164,7 @@ def _unpack_v4(path: str | os.PathLike, raw: bytes) -> GaussianCloud:
         ) from None
     _check_header(path, n, degree)
     sizes = [s for s in _stream_sizes(n, degree, version) if s]
+    check_memory(str(path), _read_memory(n, degree, sum(sizes)), f"reading {n:,} Gaussians")
     if n_streams != len(sizes) or toc < _V4_HEADER.size or toc + 16 * n_streams > len(raw):
         raise ModelFormatError(f"{path}: corrupt SPZ version 4 table of contents")
     offset = toc + 16 * n_streams
@@ -224,8 +233,15 @@ def _unpack_smallest_three(packed: np.ndarray) -> np.ndarray:
     return out
 
 
+def _read_memory(n: int, degree: int, stream_bytes: int) -> int:
+    """Bytes a read of ``n`` Gaussians needs at its peak: the streams and a few float copies."""
+    return stream_bytes + READ_COPIES * cloud_bytes(n, degree)
+
+
 def _check_header(path, n: int, degree: int) -> None:
     check_rows(path, n, "SPZ file")
+    if n > MAX_GAUSSIANS:
+        raise ModelFormatError(f"{path}: the SPZ header declares {n:,} Gaussians (at most {MAX_GAUSSIANS:,})")
     if degree > sh_index.MAX_SH_DEGREE:
         raise ModelFormatError(f"{path}: SPZ SH degree {degree} is not supported (0-{sh_index.MAX_SH_DEGREE})")
 
