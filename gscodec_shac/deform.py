@@ -174,11 +174,10 @@ def arch_json(arch: DeformArch, extra: dict[str, Any] | None = None) -> str:
 
 def read_arch(path: PathLike) -> DeformArch:
     """The architecture recorded in ``deformation.json``."""
+    from gscodec_shac.io.bounded import MAX_MODEL_JSON_BYTES, load_json, read_file
+
     path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ModelFormatError(f"{path}: not a readable deformation.json ({exc})") from None
+    data = load_json(read_file(path, MAX_MODEL_JSON_BYTES, "deformation.json"), str(path))
     if not isinstance(data, dict) or data.get("format") != ARCH_FORMAT:
         raise ModelFormatError(f"{path}: not a gscodec-shac deformation description (format {ARCH_FORMAT!r})")
     if data.get("version") != ARCH_VERSION:
@@ -186,12 +185,12 @@ def read_arch(path: PathLike) -> DeformArch:
     return DeformArch.from_dict(data.get("arch"))
 
 
-def load_weights_npz(path: PathLike) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            return {k: np.asarray(data[k]) for k in data.files}
-    except (OSError, ValueError) as exc:
-        raise ModelFormatError(f"{path}: not a readable weights file ({exc})") from None
+def load_weights_npz(path: PathLike, max_bytes: int | None = None) -> dict[str, np.ndarray]:
+    """The arrays of a weights ``.npz`` (numeric, no pickles), at most ``max_bytes`` inflated
+    (:func:`gscodec_shac.io.bounded.read_npz` checks every member before allocating it)."""
+    from gscodec_shac.io.bounded import read_npz
+
+    return read_npz(path, max_total=max_bytes)
 
 
 def load_dynamic_model(path: PathLike) -> DynamicModel:
@@ -201,14 +200,20 @@ def load_dynamic_model(path: PathLike) -> DynamicModel:
     path = Path(path)
     if not is_dynamic_model(path):
         raise ModelFormatError(f"{path}: not a dynamic model directory (no {ARCH_FILE})")
-    arch = read_arch(path / ARCH_FILE)
+    from gscodec_shac.deform_arch import weight_count
+    from gscodec_shac.io.bounded import member_path
+
+    arch_file, weights_file, model_ply = (member_path(path, name, str(path))
+                                          for name in (ARCH_FILE, WEIGHTS_FILE, MODEL_PLY))
+    arch = read_arch(arch_file)
     net = DeformNetwork(arch)
-    if not (path / WEIGHTS_FILE).is_file():
+    if not weights_file.is_file():
         raise ModelFormatError(f"{path}: the dynamic model has no {WEIGHTS_FILE}")
-    net.load_weights(load_weights_npz(path / WEIGHTS_FILE), str(path / WEIGHTS_FILE))
-    if not (path / MODEL_PLY).is_file():
+    # float64 weights at most, and each member's .npy header
+    net.load_weights(load_weights_npz(weights_file, 8 * weight_count(arch) + (1 << 16)), str(weights_file))
+    if not model_ply.is_file():
         raise ModelFormatError(f"{path}: the dynamic model has no {MODEL_PLY}")
-    return DynamicModel(read_ply(path / MODEL_PLY), net)
+    return DynamicModel(read_ply(model_ply), net)
 
 
 def save_dynamic_model(path: PathLike, model: DynamicModel, extra: dict[str, Any] | None = None) -> Path:

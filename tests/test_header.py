@@ -234,3 +234,33 @@ def test_a_400_digit_integer_in_every_numeric_header_field_is_one_clean_error(en
                 target(case)
             except BitstreamError as exc:
                 assert len(str(exc)) < 400, str(exc)
+
+
+def _zero_bomb(size: int) -> bytes:
+    """zlib data inflating to ``size`` zero bytes, made in 1 MiB steps (never held whole)."""
+    deflater, block = zlib.compressobj(9), bytes(1 << 20)
+    parts = [deflater.compress(block) for _ in range(size >> 20)]
+    return b"".join(parts) + deflater.flush()
+
+
+@pytest.mark.parametrize("size, message", [(256 << 20, "key 'chunks.sh_state.raw_size'"),
+                                           (16 << 20, "does not hold an SH stage state")])
+def test_a_zlib_bomb_in_the_stage_state_is_refused_before_it_is_inflated(encoded, size, message):
+    """A 256 MiB bomb exceeds the state limit of a 300-Gaussian stream (refused by the header
+    check); a 16 MiB one within it is refused after inflating the state's first 8 bytes."""
+    import tracemalloc
+
+    def swap(stream):
+        chunk = stream.chunk("sh_state")
+        chunk.data, chunk.meta["raw_size"] = _zero_bomb(size), size
+
+    bomb = _edit(encoded, swap)
+    tracemalloc.start()
+    try:
+        with pytest.raises(BitstreamError, match=message):
+            Decoder(workers=1).decode(bomb)
+        describe_gsc(Bitstream.from_bytes(bomb), "x") if size < 256 << 20 else None  # info does not inflate it
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 8 * len(bomb) + (8 << 20)

@@ -28,7 +28,6 @@ Unknown keys are ignored: minor versions may add information an older reader ski
 
 from __future__ import annotations
 
-import zlib
 from dataclasses import dataclass
 from typing import Any
 
@@ -42,15 +41,19 @@ from gscodec_shac.codec.quantize import Quantizer
 from gscodec_shac.deform_arch import DeformArch, weight_count
 from gscodec_shac.errors import BitstreamError, GscodecError
 from gscodec_shac.limits import MAX_GAUSSIANS
-from gscodec_shac.shac.base import STAGES, ShStage, StageState, stage_from_state
+from gscodec_shac.io.bounded import Inflater
+from gscodec_shac.shac.base import _STATE_MAGIC as STATE_MAGIC, STAGES, ShStage, StageState, stage_from_state
 from gscodec_shac.validate import Where
 
 #: Header checks raise this: "corrupt .gsc file: key 'k': problem".
 HEADER = Where("corrupt .gsc file", BitstreamError)
 #: The most SH features (and channels of any attribute) a stream may declare.
 MAX_SH_FEATURES = 128
-#: The largest inflated SH stage state (a real one: 1 KiB-3 MiB).
+#: The largest inflated SH stage state (a real one: 1 KiB-3 MiB): 16 MiB plus 256 bytes per grid
+#: cell (a vq codebook of one float32 SH-3 vector per Gaussian needs 180), at most 256 MiB.
 MAX_STATE_BYTES = 256 << 20
+STATE_BASE_BYTES = 16 << 20
+STATE_BYTES_PER_CELL = 256
 #: Deflate never expands more than 1032:1 (258-byte matches in 2-bit codes), zlib framing included.
 ZLIB_MAX_RATIO = 1032
 #: The most entries of the codec table.
@@ -269,7 +272,7 @@ def read_stage(stream: Bitstream, view: StreamHeader) -> ShStage:
     if sh is None:
         raise BitstreamError("corrupt .gsc file: the stream has no SH stage")
     try:
-        state = StageState.from_bytes(inflate(stream.chunk("sh_state"), view.zlib_sizes["sh_state"]))
+        state = StageState.from_bytes(_inflate_state(stream.chunk("sh_state"), view.zlib_sizes["sh_state"]))
     except BitstreamError:
         raise
     except GscodecError as exc:
@@ -293,14 +296,25 @@ def read_stage(stream: Bitstream, view: StreamHeader) -> ShStage:
 
 
 def inflate(chunk: Chunk, raw_size: int) -> bytes:
-    """A zlib chunk's bytes, exactly ``raw_size`` of them (checked by :func:`read_header`)."""
-    inflater = zlib.decompressobj()
-    try:
-        out = inflater.decompress(chunk.data, raw_size + 1)
-    except zlib.error as exc:
-        raise BitstreamError(f"corrupt .gsc file: chunk {chunk.name!r} does not inflate ({exc})") from None
-    if len(out) != raw_size or not inflater.eof or inflater.unused_data:
-        raise BitstreamError(f"corrupt .gsc file: chunk {chunk.name!r} does not inflate to {raw_size} bytes")
+    """A zlib chunk's bytes, exactly ``raw_size`` of them (checked by :func:`read_header`);
+    inflation stops at the first byte past them."""
+    inflater = Inflater(chunk.data, f"corrupt .gsc file: chunk {chunk.name!r}", error=BitstreamError)
+    out = inflater.read(raw_size)
+    inflater.finish()
+    return out
+
+
+def _inflate_state(chunk: Chunk, raw_size: int) -> bytes:
+    """The SH stage state: its 8-byte preamble (magic, JSON length) is inflated and checked
+    first, so a zlib bomb of the declared size is refused after 8 bytes, not after all of it."""
+    inflater = Inflater(chunk.data, f"corrupt .gsc file: chunk {chunk.name!r}", error=BitstreamError)
+    head = inflater.read(min(8, raw_size))
+    length = int.from_bytes(head[4:8], "little")
+    if head[:4] != STATE_MAGIC or 8 + length > raw_size:
+        raise BitstreamError(f"corrupt .gsc file: chunk {chunk.name!r} does not hold an SH stage state "
+                             "(bad magic or header length)")
+    out = head + inflater.read(raw_size - 8)
+    inflater.finish()
     return out
 
 
@@ -496,7 +510,7 @@ def _zlib_chunks(stream: Bitstream, attributes: dict[str, AttributeEntry], sh: S
         chunk = stream.chunk(name)
         key = f"chunks.{name}"
         HEADER.choice(chunk.meta.get("encoding"), ("zlib",), f"{key}.encoding")
-        limit = exact if exact is not None else MAX_STATE_BYTES
+        limit = exact if exact is not None else min(MAX_STATE_BYTES, STATE_BASE_BYTES + STATE_BYTES_PER_CELL * cells)
         raw_size = HEADER.integer(chunk.meta.get("raw_size"), f"{key}.raw_size", exact or 0, limit)
         if raw_size > ZLIB_MAX_RATIO * len(chunk.data):
             raise HEADER.error(f"{key}.raw_size", f"{raw_size:,} bytes cannot come from {len(chunk.data):,} "

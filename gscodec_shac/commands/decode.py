@@ -46,7 +46,11 @@ def run(args: argparse.Namespace) -> int:
             raise OutputError(f"{out}: {args.input} holds a dynamic model; OUT must be a directory")
         check_outputs([out / n for n in (MODEL_PLY, WEIGHTS_FILE, ARCH_FILE)], force=args.force)
     else:
+        from gscodec_shac.atomic import check_outputs
+        from gscodec_shac.io.models import output_files
+
         check_output(args.output, force=args.force, inputs=[args.input])
+        check_outputs(output_files(args.output), force=args.force)  # an unbundled SOG's images too
     summary = decode_file(args.input, args.output, progress=not args.quiet and sys.stderr.isatty())
     report_notes(summary["notes"])
     print(

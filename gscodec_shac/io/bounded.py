@@ -3,9 +3,8 @@
 Every reader of a model format opens its input through these helpers, so that the same
 hostile input meets the same checks everywhere (docs/reliability.md, "Model files"):
 
-* :func:`read_file` reads a file of at most a given size (a folder member must not be a
-  symlink that leaves the folder: :func:`member_path`), and registers it as an input that
-  no output of this process may replace;
+* :func:`read_file` reads a regular file of at most a given size, and :func:`member_path`
+  names a file inside an input folder (no absolute path, no ``..``, no symlink leading out);
 * :func:`load_json` parses JSON of bounded size and nesting (counted before parsing, so no
   ``RecursionError``) and refuses integers beyond 2^63 and numbers beyond float64 by name;
 * :class:`BoundedZip` opens a zip (``.sog``, ``.npz``) after checking its member count,
@@ -76,15 +75,12 @@ def member_path(folder: str | os.PathLike, name: str, where: str, error: type[Gs
 
 
 def read_file(path: str | os.PathLike, limit: int, what: str, error: type[GscodecError] = ModelFormatError) -> bytes:
-    """The bytes of the regular file ``path`` (at most ``limit`` of them), registered as an input."""
-    from gscodec_shac.atomic import protect_inputs
-
+    """The bytes of the regular file ``path``, at most ``limit`` of them."""
     path = Path(path)
     if not path.exists():
         raise error(f"{path}: no such {what} file")
     if not path.is_file():
         raise error(f"{path}: is not a regular file, expected a {what} file")
-    protect_inputs(path)
     try:
         with open(path, "rb") as handle:
             data = handle.read(limit + 1)
@@ -161,10 +157,7 @@ class BoundedZip:
 
     def __init__(self, path: str | os.PathLike, *, max_members: int = MAX_ZIP_MEMBERS, max_total: int | None = None,
                  error: type[GscodecError] = ModelFormatError) -> None:
-        from gscodec_shac.atomic import protect_inputs
-
         self.path, self.error = Path(path), error
-        protect_inputs(self.path)
         try:
             size = self.path.stat().st_size
             self._zip = zipfile.ZipFile(self.path)

@@ -29,7 +29,10 @@ import numpy as np
 import plyfile
 
 from gscodec_shac import sh_index
-from gscodec_shac.errors import ModelFormatError, ValidationError
+from gscodec_shac.errors import ModelFormatError, PlyFormatError, ValidationError
+from gscodec_shac.io.bounded import READ_COPIES, check_memory, cloud_bytes
+from gscodec_shac.io.ply_header import check_layout, read_layout
+from gscodec_shac.limits import MAX_GAUSSIANS
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.io.model_common import SH_C0, check_rows, logits_from_alpha, zero_sh_rest
 
@@ -51,6 +54,16 @@ def read_compressed_ply(path: str | os.PathLike) -> GaussianCloud:
     path = Path(path)
     if not path.is_file():
         raise ModelFormatError(f"{path}: no such compressed PLY file")
+    try:  # the header (at most 64 KiB) and its element counts against the file size, before plyfile
+        layout = read_layout(path)
+        check_layout(layout, path)
+    except PlyFormatError as exc:
+        raise ModelFormatError(str(exc)) from None
+    vertex_rows = layout.element("vertex").count if layout.element("vertex") else 0
+    if vertex_rows > MAX_GAUSSIANS:
+        raise ModelFormatError(f"{path}: {vertex_rows:,} Gaussians (at most {MAX_GAUSSIANS:,})")
+    check_memory(str(path), READ_COPIES * cloud_bytes(vertex_rows, 3) + 2 * layout.file_bytes,
+                 f"reading {vertex_rows:,} Gaussians")
     try:
         data = plyfile.PlyData.read(str(path))
     except Exception as exc:  # plyfile raises several types for malformed input

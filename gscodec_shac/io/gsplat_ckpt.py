@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import io
 import os
+import pickle
+import re
 from typing import Any, Mapping
 
 import numpy as np
@@ -29,18 +31,30 @@ import numpy as np
 from gscodec_shac.atomic import write_atomic
 from gscodec_shac.errors import ModelFormatError, ValidationError
 from gscodec_shac.gaussians import GaussianCloud
-from gscodec_shac.io.model_common import SH_C0, check_rows, note, read_bytes, sigmoid
+from gscodec_shac.io.bounded import BoundedZip, read_file
+from gscodec_shac.io.model_common import SH_C0, check_rows, note, sigmoid
+from gscodec_shac.limits import memory_budget
 
 SPLAT_KEYS = ("means", "scales", "quats", "opacities", "sh0", "shN")
+#: The object PyTorch's safe unpickler refused, as its message names it.
+_UNSUPPORTED = re.compile(r"Unsupported global: GLOBAL ([\w.]+)")
 
 
 def read_gsplat_checkpoint(path: str | os.PathLike) -> GaussianCloud:
     """Read the ``splats`` of a gsplat checkpoint into a :class:`GaussianCloud`."""
     import torch
 
-    raw = read_bytes(path, "gsplat checkpoint")
+    raw = read_file(path, memory_budget() // 3, "gsplat checkpoint")
+    if raw[:4] == b"PK\x03\x04":  # torch.save's zip stores its records: they inflate to no more than the file
+        with BoundedZip(path, max_members=1 << 16, max_total=len(raw)):
+            pass
     try:
         data = torch.load(io.BytesIO(raw), map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:  # weights_only refused a Python object: it is never built
+        found = _UNSUPPORTED.search(str(exc))
+        what = f" ({found.group(1)})" if found else ""
+        raise ModelFormatError(f"{path}: the checkpoint holds Python objects other than tensors{what}; "
+                               "they are not loaded, since loading them could run code") from None
     except Exception as exc:  # torch raises many types for foreign or corrupt files
         first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
         raise ModelFormatError(f"{path}: not a readable torch checkpoint ({first})") from None

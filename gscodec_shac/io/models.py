@@ -101,7 +101,7 @@ def write_model(path: str | os.PathLike, cloud: GaussianCloud, *, progress: bool
 
     path = Path(path)
     check_model_extension(path)
-    writer = _writers()[WRITE_EXTENSIONS[path.suffix.lower()]]
+    writer = _writers()[output_format(path)]
     if progress and "progress" in inspect.signature(writer).parameters:
         options["progress"] = True
     _, notes = _collecting(lambda: writer(path, cloud, **options))
@@ -161,11 +161,30 @@ def _writers() -> dict[str, Callable[..., None]]:
     return {"ply": write_ply, "spz": write_spz, "splat": write_splat, "sog": write_sog, "gsplat": write_gsplat_checkpoint}
 
 
+def output_format(path: str | os.PathLike) -> str | None:
+    """The format a model output path names: by extension, or ``sog`` for a ``meta.json`` (an
+    unbundled SOG: the file and its images beside it); None when it names none."""
+    path = Path(path)
+    if path.name == "meta.json":
+        return "sog"
+    return WRITE_EXTENSIONS.get(path.suffix.lower())
+
+
+def output_files(path: str | os.PathLike) -> list[Path]:
+    """Every file writing a model to ``path`` creates (an unbundled SOG: its images and ``meta.json``)."""
+    from gscodec_shac.io.sog import SOG_IMAGES
+
+    path = Path(path)
+    if path.name == "meta.json":
+        return [path.parent / name for name in SOG_IMAGES] + [path]
+    return [path]
+
+
 def check_model_extension(path: str | os.PathLike) -> None:
     """Raise before any work when ``path``'s extension names no writable model format."""
-    suffix = Path(path).suffix.lower()
-    if suffix not in WRITE_EXTENSIONS:
+    if output_format(path) is None:
+        suffix = Path(path).suffix.lower()
         raise ModelFormatError(
             f"{path}: cannot write a Gaussian model with extension {suffix or '(none)'!r}; "
-            f"writable: {', '.join(WRITE_EXTENSIONS)}"
+            f"writable: {', '.join(WRITE_EXTENSIONS)} or a SOG meta.json"
         )

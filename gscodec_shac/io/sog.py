@@ -57,6 +57,9 @@ SQRT2 = np.sqrt(2.0)
 _QUAT_SLOTS = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
 _SH_COEFFS = {1: 3, 2: 8, 3: 15}
 _PALETTE_COLUMNS = 64
+#: The images an unbundled SOG writes beside its ``meta.json``.
+SOG_IMAGES = ("means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0.webp", "shN_centroids.webp",
+              "shN_labels.webp")
 #: The largest SH palette (labels are 16 bits) and the most members a ``.sog`` zip may hold.
 _MAX_PALETTE = 1 << 16
 _MAX_MEMBERS = 64

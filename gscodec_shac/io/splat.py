@@ -24,9 +24,11 @@ import numpy as np
 from gscodec_shac.atomic import write_atomic
 from gscodec_shac.errors import ModelFormatError
 from gscodec_shac.gaussians import GaussianCloud
+from gscodec_shac.io.bounded import READ_COPIES, check_memory, cloud_bytes, read_file
 from gscodec_shac.io.model_common import (
-    SH_C0, check_rows, logits_from_alpha, note, read_bytes, sigmoid, to_uint8, unit_quats, zero_sh_rest,
+    SH_C0, check_rows, logits_from_alpha, note, sigmoid, to_uint8, unit_quats, zero_sh_rest,
 )
+from gscodec_shac.limits import MAX_GAUSSIANS, memory_budget
 
 RECORD = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rotation", "u1", 4)])
 #: The smallest linear scale a reader accepts; zero scales become this.
@@ -35,9 +37,12 @@ MIN_SCALE = 1e-12
 
 def read_splat(path: str | os.PathLike) -> GaussianCloud:
     """Read a ``.splat`` file into a :class:`GaussianCloud` (SH degree 0)."""
-    data = read_bytes(path, ".splat")
+    data = read_file(path, memory_budget(), ".splat")
     if len(data) % RECORD.itemsize:
         raise ModelFormatError(f"{path}: not a .splat file ({len(data):,} bytes is not a multiple of 32)")
+    if len(data) // RECORD.itemsize > MAX_GAUSSIANS:
+        raise ModelFormatError(f"{path}: {len(data) // RECORD.itemsize:,} records (at most {MAX_GAUSSIANS:,} Gaussians)")
+    check_memory(str(path), READ_COPIES * cloud_bytes(len(data) // RECORD.itemsize, 0), "reading the records")
     records = np.frombuffer(data, dtype=RECORD)
     n = records.shape[0]
     check_rows(path, n, ".splat file")
