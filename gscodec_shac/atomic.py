@@ -50,7 +50,8 @@ def protect_inputs(*paths: str | os.PathLike | None) -> None:
     """Register input files: no atomic output of this process may replace them.
 
     A multi-file input is every file it reads: a folder registers the files inside it (a SOG
-    folder's images, a dynamic model's members), a SOG ``meta.json`` the images it names.
+    folder's images, a dynamic model's members), a JSON file the files beside it that it names
+    (a SOG ``meta.json``'s images).
     """
     for path in paths:
         if path is None:
@@ -69,17 +70,40 @@ def protect_inputs(*paths: str | os.PathLike | None) -> None:
 
 
 def _members(path: Path, info: os.stat_result) -> list[Path]:
-    """The files a folder input holds, or that a SOG ``meta.json`` input names beside it."""
+    """The files a folder input holds, or that a JSON input (a SOG ``meta.json``) names beside it."""
     if stat.S_ISDIR(info.st_mode):
         try:
             return [entry for entry in path.iterdir() if entry.is_file()][:_MAX_MEMBERS]
         except OSError:
             return []
     if path.suffix.lower() == ".json" and stat.S_ISREG(info.st_mode):
-        from gscodec_shac.io.sog import sog_files
+        from gscodec_shac.io.bounded import MAX_MODEL_JSON_BYTES, load_json, member_path, read_file
 
-        return sog_files(path)
+        try:
+            document = load_json(read_file(path, MAX_MODEL_JSON_BYTES, "JSON"), str(path))
+        except GscodecError:
+            return []
+        out = []
+        for name in _strings(document):
+            try:
+                out.append(member_path(path.parent, name, str(path)))
+            except GscodecError:
+                continue
+        return out[:_MAX_MEMBERS]
     return []
+
+
+def _strings(value: Any) -> Iterator[str]:
+    """Every string leaf of a parsed JSON document."""
+    stack = [value]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, str):
+            yield item
+        elif isinstance(item, dict):
+            stack.extend(item.values())
+        elif isinstance(item, list):
+            stack.extend(item)
 
 
 @contextlib.contextmanager

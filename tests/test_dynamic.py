@@ -440,7 +440,7 @@ def test_render_uses_each_frames_time(tmp_path: Path, dynamic_dir: Path) -> None
 def test_damaged_dynamic_streams_are_clean_errors(tmp_path: Path, dynamic_dir: Path) -> None:
     """Seeded mutations of a dynamic stream (every fuzz family) through the whole dynamic decode:
     each is a valid decode or one GscodecError, never a crash."""
-    from gscodec_shac import fuzz
+    from tests.fuzzlib import gsc as fuzz
     from gscodec_shac.codec import encode_file
     from gscodec_shac.codec.container import Bitstream
     from gscodec_shac.codec.decoder import Decoder

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from gscodec_shac import fuzz
+from tests.fuzzlib import gsc as fuzz
 
 FIXTURES = Path(__file__).parent / "fixtures" / "streams"
 #: Mutated streams per family (each through decode and info): 2,500 in all.

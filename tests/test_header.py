@@ -215,7 +215,7 @@ def test_a_400_digit_integer_in_every_numeric_header_field_is_one_clean_error(en
     ends in a valid result or one BitstreamError for decode and info, never an OverflowError."""
     import json
 
-    from gscodec_shac.fuzz import _pack, _split
+    from tests.fuzzlib.gsc import _pack, _split
 
     data = encoded if source == "encoded" else next(iter(sorted((FIXTURES / "v2.0").glob("*.gsc")))).read_bytes()
     text, payloads, version = _split(data)

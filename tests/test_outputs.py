@@ -16,7 +16,8 @@ import numpy as np
 import plyfile
 import pytest
 
-from gscodec_shac import atomic, fuzz
+from gscodec_shac import atomic
+from tests.fuzzlib import gsc as fuzz
 from gscodec_shac.cli import main
 from gscodec_shac.codec import Decoder, Encoder
 from gscodec_shac.errors import OutputError

@@ -29,6 +29,7 @@ import json
 import math
 import os
 import struct
+import tokenize
 import zipfile
 import zlib
 from pathlib import Path
@@ -268,7 +269,7 @@ def _read_npy(bundle: BoundedZip, name: str, error: type[GscodecError]) -> np.nd
             raise ValueError(f"unknown .npy version {version}")
         reader = npy.read_array_header_1_0 if version == (1, 0) else npy.read_array_header_2_0
         shape, fortran, dtype = reader(handle, max_header_size=1 << 16)
-    except (ValueError, SyntaxError, TypeError, EOFError, struct.error) as exc:
+    except (ValueError, SyntaxError, TypeError, EOFError, struct.error, tokenize.TokenError) as exc:
         raise error(f"{where}: not a readable .npy array ({str(exc)[:200]})") from None
     if dtype.hasobject or dtype.fields is not None or dtype.kind not in NPY_KINDS or dtype.subdtype is not None:
         raise error(f"{where}: dtype {dtype} is not allowed (booleans, integers and floats are)")
@@ -313,10 +314,15 @@ def decode_rgba(data: bytes, where: str, max_pixels: int, error: type[GscodecErr
     width, height = size
     if width < 1 or height < 1 or width * height > max_pixels:
         raise error(f"{where}: a {width}x{height} image, more than the {max_pixels:,} pixels it may have here")
+    logging = cv2.utils.logging
+    level = logging.getLogLevel()
+    logging.setLogLevel(logging.LOG_LEVEL_SILENT)  # our one error line says what OpenCV would log
     try:
         image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error as exc:
         raise error(f"{where}: cannot be decoded ({str(exc).strip().splitlines()[-1][:200]})") from None
+    finally:
+        logging.setLogLevel(level)
     if image is None or image.dtype != np.uint8 or image.ndim not in (2, 3) or image.shape[:2] != (height, width):
         raise error(f"{where}: cannot be decoded as an 8-bit {width}x{height} image")
     if image.ndim == 2:

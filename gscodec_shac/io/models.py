@@ -29,7 +29,6 @@ from __future__ import annotations
 import os
 import sys
 import warnings
-import zipfile
 from pathlib import Path
 from typing import Any, Callable, TextIO
 
@@ -48,6 +47,7 @@ _SUPPORTED = (
 
 def detect_format(path: str | os.PathLike) -> str:
     """The format name of ``path`` (see the module table); unknown -> :class:`ModelFormatError`."""
+    from gscodec_shac.io.bounded import BoundedZip
     from gscodec_shac.io.compressed_ply import is_compressed_ply_header
     from gscodec_shac.io.sog import find_sog_meta
 
@@ -66,11 +66,8 @@ def detect_format(path: str | os.PathLike) -> str:
     if head[:2] == b"\x1f\x8b" or head[:4] == b"NGSP":
         return "spz"
     if head[:4] == b"PK\x03\x04":
-        try:
-            with zipfile.ZipFile(path) as bundle:
-                names = [Path(n).name for n in bundle.namelist()]
-        except (zipfile.BadZipFile, OSError):
-            raise ModelFormatError(f"{path}: a corrupt zip file (neither a .sog bundle nor a torch checkpoint)") from None
+        with BoundedZip(path, max_members=1 << 16) as bundle:
+            names = [Path(n).name for n in bundle.names()]
         if "meta.json" in names:
             return "sog"
         if "data.pkl" in names:

@@ -173,10 +173,7 @@ def _unpack_v4(path: str | os.PathLike, raw: bytes) -> GaussianCloud:
         packed, unpacked = struct.unpack_from("<QQ", raw, toc + 16 * i)
         if unpacked != size or offset + packed > len(raw):
             raise ModelFormatError(f"{path}: corrupt or truncated SPZ version 4 stream {i}")
-        try:
-            block = zstandard.ZstdDecompressor().decompress(raw[offset:offset + packed], max_output_size=size)
-        except zstandard.ZstdError as exc:
-            raise ModelFormatError(f"{path}: corrupt SPZ version 4 stream {i} ({exc})") from None
+        block = _unzstd(path, i, raw[offset:offset + packed], size)
         if len(block) != size:
             raise ModelFormatError(f"{path}: SPZ version 4 stream {i} has {len(block)} bytes, expected {size}")
         streams.append(np.frombuffer(block, dtype=np.uint8))
@@ -186,6 +183,24 @@ def _unpack_v4(path: str | os.PathLike, raw: bytes) -> GaussianCloud:
     if flags & 0x2:
         note(f"{path}: SPZ extensions are ignored")
     return _unpack(path, n, degree, fractional_bits, version, streams)
+
+
+def _unzstd(path: str | os.PathLike, index: int, data: bytes, size: int) -> bytes:
+    """A zstd stream that must hold ``size`` bytes: a frame declaring another size is refused
+    before inflating, and a stream is never inflated past ``size + 1`` bytes."""
+    import io
+
+    import zstandard
+
+    try:
+        declared = zstandard.frame_content_size(data)
+        if declared not in (-1, size):  # -1: the frame does not say
+            raise ModelFormatError(f"{path}: SPZ version 4 stream {index} declares {declared:,} bytes, "
+                                   f"expected {size:,}")
+        with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data)) as reader:
+            return reader.read(size + 1)
+    except zstandard.ZstdError as exc:
+        raise ModelFormatError(f"{path}: corrupt SPZ version 4 stream {index} ({exc})") from None
 
 
 def _unpack(path, n: int, degree: int, fractional_bits: int, version: int, streams: list[np.ndarray]) -> GaussianCloud:
