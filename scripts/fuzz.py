@@ -1,21 +1,28 @@
-"""The long fuzz run of the ``.gsc`` readers: N mutated streams plus every truncation, for
-``decode`` and ``info``, each case in a child process with a time and a memory limit.
+"""The long fuzz run of every reader: ``.gsc`` streams and every model format, in-process and
+through the command line, each case in a child process with a time and a memory limit.
 
     python scripts/fuzz.py --cases 100000 --out docs/fuzz
 
-Seeds: one small stream per SH stage (none, trunc, pca, lst, vq) of a synthetic scene and
-every legacy stream under ``tests/fixtures/streams``. The ``--cases`` mutated streams are
-shared out over the mutation families (``bytes``, ``resigned``, ``header``, ``state``,
-``resize``; see :mod:`gscodec_shac.fuzz`) and the seeds; every truncation offset of every
-seed is run on top. Each case goes through both targets.
+``.gsc`` (:mod:`tests.fuzzlib.gsc`): one small stream per SH stage of a synthetic scene and
+every legacy stream under ``tests/fixtures/streams``; ``--cases`` mutated streams shared out
+over the families ``bytes``, ``resigned``, ``header``, ``state``, ``resize`` and the seeds,
+plus every truncation offset of every seed; each through ``decode`` and ``info`` in-process,
+and ``--cli-cases`` of them through ``gscodec-shac decode`` in a child process.
 
-Workers are child processes (``--workers``); each sets ``RLIMIT_AS`` to its size after
-start-up plus ``--memory`` and raises a timeout in a case after ``--timeout`` seconds; a
-worker that stops answering is killed (a hang), one that dies is restarted (the case is
-counted as died). The per-case peak memory is the growth of the worker's resident set
-(``VmHWM``, reset before every target). Writes ``OUT/fuzz.json`` (every count, the failures
-with the case that reproduces each) and ``OUT/fuzz.md`` (the table in docs/reliability.md);
-the exit status is 1 when any case crashed, hung or died.
+Models (:mod:`tests.fuzzlib.models`): one seed per format (dynamic directory, SPZ v1-v4,
+.splat, SOG bundle and folder, compressed.ply, gsplat .pt); every truncation (every offset
+of members up to 4 KiB), ``--model-cases`` byte edits and ``--hostile`` structured hostile
+values per format, read in-process as ``gscodec-shac info`` does, and ``--cli-cases`` per
+format and family through ``gscodec-shac info`` in a child process.
+
+Workers are child processes (``--workers``); each limits its address space to its size after
+start-up plus ``--memory`` MiB and stops a case after ``--timeout`` seconds; a worker that stops
+answering is killed (a hang), one that dies is restarted (a crash). Outcome classes: ``valid``,
+``error`` (one clean ``GscodecError``; through the CLI exit 2, 3 or 5 with one ``error:`` line),
+and the failures ``internal`` (any other exception; exit 70), ``memory`` (``MemoryError``, or a
+case whose peak memory growth exceeds ``--memory-floor`` MiB + ``--memory-factor`` x its input
+bytes), ``hang`` and ``crash``. Writes ``OUT/fuzz.json`` (counts and every failure with the case
+that rebuilds it) and ``OUT/fuzz.md`` (the table of docs/reliability.md); exits 1 on any failure.
 """
 
 from __future__ import annotations
@@ -26,7 +33,9 @@ import multiprocessing as mp
 import os
 import signal
 import sys
+import tempfile
 import time
+import zlib
 from collections import Counter, defaultdict
 from multiprocessing.connection import wait
 from pathlib import Path
@@ -35,7 +44,8 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-MUTATION_FAMILIES = ("bytes", "resigned", "header", "state", "resize")
+GSC_FAMILIES = ("bytes", "resigned", "header", "state", "resize")
+FAILURES = ("internal", "memory", "hang", "crash")
 
 
 class CaseTimeout(BaseException):
@@ -60,11 +70,46 @@ def _reset_peak() -> bool:
         return False
 
 
-def worker_main(conn, seeds: list[tuple[str, bytes]], targets: tuple[str, ...], timeout: float, memory: int) -> None:
+class Cases:
+    """Builds and runs the cases of a worker (seeds given by the parent)."""
+
+    def __init__(self, gsc_seeds: list[tuple[str, bytes]], model_seeds: dict, timeout: float) -> None:
+        self.gsc_seeds, self.model_seeds, self.timeout = gsc_seeds, model_seeds, timeout
+
+    def build(self, job: tuple) -> tuple[Any, int]:
+        """The case of ``job`` and its input bytes."""
+        from tests.fuzzlib import gsc, models
+
+        domain, family, key, index, _ = job
+        if domain == "gsc":
+            data = gsc.make_case(family, self.gsc_seeds[key][1], key, index)
+            return data, len(data)
+        files, links = models.make_case(self.model_seeds[key], family, index)
+        return (files, links), sum(len(v) for v in files.values())
+
+    def run(self, job: tuple, case: Any, target: str):
+        from tests.fuzzlib import cli, gsc, models
+
+        domain, _, key, _, _ = job
+        if domain == "gsc" and target != "cli":
+            outcome = gsc.run_case(target, case)
+            kind = outcome.kind
+            if kind == "crash":
+                kind = "memory" if outcome.detail.startswith("MemoryError") else "internal"
+            return models.Outcome(kind, outcome.detail, outcome.seconds)
+        if domain == "gsc":
+            with tempfile.TemporaryDirectory(prefix="gscodec-fuzz-") as tmp:
+                (Path(tmp) / "case.gsc").write_bytes(case)
+                return cli.run(["decode", "case.gsc", "out.ply"], Path(tmp), timeout=self.timeout)
+        seed = self.model_seeds[key]
+        if target == "cli":
+            return models.run_cli(seed, *case, timeout=self.timeout)
+        return models.run_case(seed, *case)
+
+
+def worker_main(conn, gsc_seeds, model_seeds, timeout: float, memory: int, floor: int, factor: float) -> None:
     """Run the cases the parent sends, one at a time, and answer with one result per target."""
     import resource
-
-    from gscodec_shac import fuzz
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C
 
@@ -72,32 +117,41 @@ def worker_main(conn, seeds: list[tuple[str, bytes]], targets: tuple[str, ...], 
         raise CaseTimeout()
 
     signal.signal(signal.SIGALRM, alarm)
-    for _, data in seeds[:3]:  # load the codec libraries before the limit is set
-        for target in targets:
-            fuzz.run_case(target, data)
+    cases = Cases(gsc_seeds, model_seeds, timeout)
+    # load the codec libraries and the readers before the limit is set; the CLI's own size
+    cases.run(("gsc", "bytes", 0, 0, ()), gsc_seeds[0][1], "decode")
+    for key, seed in model_seeds.items():
+        cases.run(("model", "bytes", key, 0, ()), (dict(seed.files), {}), "read")
+    cli_base = cases.run(("model", "bytes", "sogdir", 0, ()), (dict(model_seeds["sogdir"].files), {}), "cli").peak_bytes
     limit = _status("VmSize") + memory
     resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     while True:
         job = conn.recv()
         if job is None:
             return
-        family, seed_index, index = job
-        data = fuzz.make_case(family, seeds[seed_index][1], seed_index, index)
+        case, size = cases.build(job)
         results = []
-        for target in targets:
+        for target in job[4]:
             conn.send(("start", target))
             base = _status("VmRSS")
             peak_ok = _reset_peak()
-            signal.setitimer(signal.ITIMER_REAL, timeout)
+            signal.setitimer(signal.ITIMER_REAL, timeout if target != "cli" else 2 * timeout + 5)
             try:
-                outcome = fuzz.run_case(target, data)
+                outcome = cases.run(job, case, target)
                 kind, detail, seconds = outcome.kind, outcome.detail, outcome.seconds
+                if target == "cli":
+                    peak = max(0, outcome.peak_bytes - cli_base)
+                else:
+                    peak = max(0, _status("VmHWM") - base) if peak_ok else 0
             except CaseTimeout:
-                kind, detail, seconds = "hang", f"over {timeout:g} s (in Python)", timeout
+                kind, detail, seconds, peak = "hang", f"over {timeout:g} s (in Python)", timeout, 0
+            except MemoryError:
+                kind, detail, seconds, peak = "memory", "MemoryError", 0.0, 0
             finally:
                 signal.setitimer(signal.ITIMER_REAL, 0)
-            peak = max(0, _status("VmHWM") - base) if peak_ok else 0
-            results.append((target, kind, detail, seconds, peak))
+            if kind in ("valid", "error") and peak > floor + factor * size:
+                kind, detail = "memory", f"peak {peak / 2**20:.0f} MiB for {size:,} input bytes ({detail or kind})"
+            results.append((target, kind, detail, seconds, peak, size))
         conn.send(("done", results))
 
 
@@ -105,9 +159,9 @@ def worker_main(conn, seeds: list[tuple[str, bytes]], targets: tuple[str, ...], 
 class Pool:
     """``workers`` child processes, each running one case at a time, restarted when they die or hang."""
 
-    def __init__(self, workers: int, seeds, targets, timeout: float, memory: int) -> None:
-        self.args = (seeds, targets, timeout, memory)
-        self.deadline = 2 * timeout * len(targets) + 30.0
+    def __init__(self, workers: int, args: tuple, timeout: float) -> None:
+        self.args = args
+        self.deadline = 4 * timeout + 30.0
         self.context = mp.get_context("spawn")
         self.slots = [self._start() for _ in range(workers)]
 
@@ -119,11 +173,9 @@ class Pool:
         return {"process": process, "conn": parent, "job": None, "target": None, "since": time.monotonic()}
 
     def run(self, jobs, record) -> None:
-        """Run every job; ``record(job, target, kind, detail, seconds, peak)`` gets each outcome."""
+        """Run every job; ``record(job, target, kind, detail, seconds, peak, size)`` gets each outcome."""
         pending = iter(jobs)
-        busy = 0
-        for slot in self.slots:
-            busy += self._give(slot, pending)
+        busy = sum(self._give(slot, pending) for slot in self.slots)
         while busy:
             ready = wait([s["conn"] for s in self.slots if s["job"] is not None], timeout=1.0)
             now = time.monotonic()
@@ -134,25 +186,22 @@ class Pool:
                     try:
                         message = slot["conn"].recv()
                     except (EOFError, OSError):
-                        self._lost(slot, record, "died", self._exit_detail(slot))
-                        busy -= 1
-                        busy += self._give(slot, pending)
+                        self._lost(slot, record, "crash", self._exit_detail(slot))
+                        busy += self._give(slot, pending) - 1
                         continue
                     slot["since"] = now
                     if message[0] == "start":
                         slot["target"] = message[1]
                         continue
-                    for target, kind, detail, seconds, peak in message[1]:
-                        record(slot["job"], target, kind, detail, seconds, peak)
+                    for result in message[1]:
+                        record(slot["job"], *result)
                     slot["job"] = None
-                    busy -= 1
-                    busy += self._give(slot, pending)
+                    busy += self._give(slot, pending) - 1
                 elif now - slot["since"] > self.deadline:
                     slot["process"].kill()
                     slot["process"].join()
                     self._lost(slot, record, "hang", f"no answer for {self.deadline:g} s (killed)")
-                    busy -= 1
-                    busy += self._give(slot, pending)
+                    busy += self._give(slot, pending) - 1
 
     def _give(self, slot: dict, pending) -> int:
         job = next(pending, None)
@@ -164,7 +213,7 @@ class Pool:
 
     def _lost(self, slot: dict, record, kind: str, detail: str) -> None:
         """The worker of ``slot`` hung or died: record the case, start a new worker."""
-        record(slot["job"], slot["target"] or "decode", kind, detail, 0.0, 0)
+        record(slot["job"], slot["target"] or slot["job"][4][0], kind, detail, 0.0, 0, 0)
         slot["process"].join(timeout=5)
         slot.update(self._start())
         slot["job"] = None
@@ -189,117 +238,151 @@ class Pool:
 
 # ------------------------------------------------------------------ summary
 class Tally:
-    """Counts per (family, target) and the failing cases."""
+    """Counts per (reader, family, target) and the failing cases."""
 
-    def __init__(self, seed_names: list[str]) -> None:
-        self.seed_names = seed_names
-        self.rows: dict[tuple[str, str], Counter] = defaultdict(Counter)
-        self.errors: dict[tuple[str, str], Counter] = defaultdict(Counter)
-        self.slowest: dict[tuple[str, str], float] = defaultdict(float)
-        self.peak: dict[tuple[str, str], int] = defaultdict(int)
+    def __init__(self, gsc_names: list[str]) -> None:
+        self.gsc_names = gsc_names
+        self.rows: dict[tuple[str, str, str], Counter] = defaultdict(Counter)
+        self.slowest: dict[tuple[str, str, str], float] = defaultdict(float)
+        self.peak: dict[tuple[str, str, str], int] = defaultdict(int)
+        self.ratio: dict[tuple[str, str, str], float] = defaultdict(float)
         self.failures: list[dict[str, Any]] = []
 
-    def record(self, job, target: str, kind: str, detail: str, seconds: float, peak: int) -> None:
-        family, seed_index, index = job
-        key = (family, target)
-        row = self.rows[key]
+    def record(self, job, target: str, kind: str, detail: str, seconds: float, peak: int, size: int) -> None:
+        domain, family, key, index, _ = job
+        reader = ".gsc" if domain == "gsc" else key
+        row_key = (reader, family, target)
+        row = self.rows[row_key]
         row["cases"] += 1
-        if kind == "crash" and detail.startswith(("MemoryError", "RecursionError")):
-            kind = detail.split(":")[0]
         row[kind] += 1
-        if kind == "error":
-            self.errors[key][detail.split(":")[0]] += 1
-        self.slowest[key] = max(self.slowest[key], seconds)
-        self.peak[key] = max(self.peak[key], peak)
-        if kind not in ("valid", "error"):
-            self.failures.append({"family": family, "seed": self.seed_names[seed_index], "seed_index": seed_index,
-                                  "index": index, "target": target, "kind": kind, "detail": detail})
+        self.slowest[row_key] = max(self.slowest[row_key], seconds)
+        self.peak[row_key] = max(self.peak[row_key], peak)
+        if size:
+            self.ratio[row_key] = max(self.ratio[row_key], peak / size)
+        if kind in FAILURES:
+            seed = self.gsc_names[key] if domain == "gsc" else key
+            self.failures.append({"domain": domain, "family": family, "seed": seed, "seed_index": key, "index": index,
+                                  "target": target, "kind": kind, "detail": detail})
 
     def table(self) -> list[dict[str, Any]]:
         out = []
-        for (family, target), row in sorted(self.rows.items(), key=lambda item: (_order(item[0][0]), item[0][1])):
+        for key in sorted(self.rows, key=lambda k: (k[0] != ".gsc", k[0], k[1], k[2])):
+            row = self.rows[key]
             out.append({
-                "family": family, "target": target, "cases": row["cases"], "valid": row["valid"],
-                "clean_errors": row["error"], "tracebacks": row["crash"], "MemoryError": row["MemoryError"],
-                "RecursionError": row["RecursionError"], "hangs": row["hang"], "died": row["died"],
-                "max_seconds": round(self.slowest[(family, target)], 3),
-                "max_peak_mib": round(self.peak[(family, target)] / 2**20, 1),
-                "errors_by_type": dict(self.errors[(family, target)].most_common()),
+                "reader": key[0], "family": key[1], "target": key[2], "cases": row["cases"], "valid": row["valid"],
+                "clean_errors": row["error"], **{kind: row[kind] for kind in FAILURES},
+                "max_seconds": round(self.slowest[key], 3), "max_peak_mib": round(self.peak[key] / 2**20, 1),
             })
         return out
 
 
-def _order(family: str) -> int:
-    return (("truncate",) + MUTATION_FAMILIES).index(family)
-
-
 def markdown(table: list[dict[str, Any]], config: dict[str, Any]) -> str:
-    cols = ("cases", "valid", "clean_errors", "tracebacks", "MemoryError", "RecursionError", "hangs", "died")
-    lines = [
-        "| family | target | cases | valid | clean errors | tracebacks | MemoryError | RecursionError | "
-        "hangs | died | max s | max peak MiB |",
-        "|---|---|" + "---:|" * 10,
-    ]
+    cols = ("cases", "valid", "clean_errors") + FAILURES
+    lines = ["| reader | family | target | cases | valid | clean errors | internal | memory | hangs | crashes "
+             "| max s | max peak MiB |", "|---|---|---|" + "---:|" * 9]
     totals: Counter = Counter()
+    per_reader: Counter = Counter()
     for row in table:
-        lines.append(f"| {row['family']} | {row['target']} | " + " | ".join(f"{row[c]:,}" for c in cols)
-                     + f" | {row['max_seconds']:.2f} | {row['max_peak_mib']:.0f} |")
+        lines.append(f"| {row['reader']} | {row['family']} | {row['target']} | "
+                     + " | ".join(f"{row[c]:,}" for c in cols) + f" | {row['max_seconds']:.2f} | {row['max_peak_mib']:.0f} |")
         totals.update({c: row[c] for c in cols})
-    lines.append("| **all** | both | " + " | ".join(f"**{totals[c]:,}**" for c in cols) + " | | |")
+        per_reader[row["reader"]] += row["cases"]
+    lines.append("| **all** | | | " + " | ".join(f"**{totals[c]:,}**" for c in cols) + " | | |")
     lines.append("")
-    lines.append(f"{config['mutated_streams']:,} mutated streams and {config['truncations']:,} truncations "
-                 f"({len(config['seeds'])} seeds), each through {' and '.join(config['targets'])}; "
-                 f"{config['seconds']:.0f} s with {config['workers']} workers, limits {config['timeout']:g} s and "
-                 f"{config['memory_mib']:,} MiB per case.")
+    lines.append("Cases per reader: " + ", ".join(f"{reader} {count:,}" for reader, count in per_reader.items()) + ".")
+    lines.append("")
+    lines.append(f"{config['gsc_mutated']:,} mutated .gsc streams and {config['gsc_truncations']:,} truncations "
+                 f"({len(config['gsc_seeds'])} seeds) through decode and info, {config['gsc_cli']:,} through "
+                 f"`gscodec-shac decode`; {config['model_cases']:,} model cases in-process and {config['model_cli']:,} "
+                 f"through `gscodec-shac info`; {config['seconds']:.0f} s with {config['workers']} workers; limits "
+                 f"{config['timeout']:g} s and {config['memory_mib']:,} MiB of address space per case; a case counts "
+                 f"as memory when its peak grows past {config['memory_floor_mib']} MiB + {config['memory_factor']:g} x "
+                 f"its input bytes.")
     return "\n".join(lines) + "\n"
+
+
+def _jobs(args, gsc_seeds, model_seeds) -> tuple[list[tuple], dict[str, int]]:
+    from tests.fuzzlib import models
+
+    jobs: list[tuple] = []
+    counts = Counter()
+    if args.only in ("all", "gsc"):
+        if not args.no_truncations:
+            for s, (_, data) in enumerate(gsc_seeds):
+                jobs += [("gsc", "truncate", s, offset, ("decode", "info")) for offset in range(len(data))]
+                counts["gsc_truncations"] += len(data)
+        for k in range(args.cases):
+            family = GSC_FAMILIES[k % len(GSC_FAMILIES)]
+            seed = (k // len(GSC_FAMILIES)) % len(gsc_seeds)
+            index = k // (len(GSC_FAMILIES) * len(gsc_seeds))
+            jobs.append(("gsc", family, seed, index, ("decode", "info")))
+            if k < args.cli_cases * len(GSC_FAMILIES):
+                jobs.append(("gsc", family, seed, index, ("cli",)))
+                counts["gsc_cli"] += 1
+        counts["gsc_mutated"] = args.cases
+    if args.only in ("all", "models"):
+        for key, seed in model_seeds.items():
+            sizes = {"truncate": len(models.truncation_cases(seed)) if not args.no_truncations else 0,
+                     "bytes": args.model_cases, "hostile": args.hostile}
+            for family, count in sizes.items():
+                jobs += [("model", family, key, index, ("read",)) for index in range(count)]
+                counts["model_cases"] += count
+                step = max(1, count // max(1, args.cli_cases))
+                cli = [("model", family, key, index, ("cli",)) for index in range(0, count, step)][: args.cli_cases]
+                jobs += cli
+                counts["model_cli"] += len(cli)
+    # interleave so that the slow CLI and bomb cases spread over the run
+    jobs.sort(key=lambda job: zlib.crc32(repr(job).encode()))
+    return jobs, counts
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--cases", type=int, default=10_000, help="mutated streams (default 10000)")
+    parser.add_argument("--cases", type=int, default=10_000, help="mutated .gsc streams (default 10000)")
+    parser.add_argument("--model-cases", type=int, default=2000, help="byte-edit cases per model format (default 2000)")
+    parser.add_argument("--hostile", type=int, default=500, help="hostile-value cases per model format (default 500)")
+    parser.add_argument("--cli-cases", type=int, default=40,
+                        help="cases through the CLI per model format and family, and per .gsc family (default 40)")
+    parser.add_argument("--only", choices=("all", "gsc", "models"), default="all", help="which readers (default all)")
     parser.add_argument("--out", default="fuzz-output", help="folder for fuzz.json and fuzz.md")
     parser.add_argument("--fixtures", default=str(REPO / "tests" / "fixtures" / "streams"),
                         help="folder of legacy .gsc seeds ('' for none)")
-    parser.add_argument("--seed-gaussians", type=int, default=300, help="Gaussians of the synthetic seeds")
+    parser.add_argument("--seed-gaussians", type=int, default=300, help="Gaussians of the synthetic .gsc seeds")
     parser.add_argument("--workers", type=int, default=max(1, min(4, os.cpu_count() or 1)))
-    parser.add_argument("--timeout", type=float, default=20.0, help="seconds per case and target (default 20)")
+    parser.add_argument("--timeout", type=float, default=10.0, help="seconds per case and target (default 10)")
     parser.add_argument("--memory", type=int, default=2048, help="MiB of address space per case (default 2048)")
-    parser.add_argument("--no-truncations", action="store_true", help="skip the every-offset truncations")
-    parser.add_argument("--targets", nargs="+", default=["decode", "info"], choices=("decode", "info"))
+    parser.add_argument("--memory-floor", type=int, default=64, help="MiB any case may grow by (default 64)")
+    parser.add_argument("--memory-factor", type=float, default=64.0,
+                        help="and this many times its input bytes on top (default 64)")
+    parser.add_argument("--no-truncations", action="store_true", help="skip the truncations")
     parser.add_argument("--from-json", metavar="FUZZ_JSON", help="only rewrite the table of an earlier run's fuzz.json")
     args = parser.parse_args(argv)
+    from gscodec_shac.atomic import write_atomic, write_json
+
     if args.from_json:
         record = json.loads(Path(args.from_json).read_text())
         text = markdown(record["table"], record["config"])
-        from gscodec_shac.atomic import write_atomic
-
         write_atomic(Path(args.from_json).with_name("fuzz.md"), text)
         print(text)
         return 0
     os.environ.setdefault("MALLOC_ARENA_MAX", "2")  # glibc arenas reserve 64 MiB of address space per thread
-
-    from gscodec_shac import fuzz
+    from tests.fuzzlib import gsc, models
 
     tic = time.monotonic()
-    seeds = list(fuzz.seed_streams(args.seed_gaussians, fixtures=args.fixtures or None).items())
-    jobs: list[tuple[str, int, int]] = []
-    if not args.no_truncations:
-        jobs += [("truncate", s, offset) for s, (_, data) in enumerate(seeds) for offset in range(len(data))]
-    truncations = len(jobs)
-    for k in range(args.cases):
-        family = MUTATION_FAMILIES[k % len(MUTATION_FAMILIES)]
-        seed = (k // len(MUTATION_FAMILIES)) % len(seeds)
-        jobs.append((family, seed, k // (len(MUTATION_FAMILIES) * len(seeds))))
-    tally = Tally([name for name, _ in seeds])
-    pool = Pool(args.workers, seeds, tuple(args.targets), args.timeout, args.memory << 20)
+    gsc_seeds = list(gsc.seed_streams(args.seed_gaussians, fixtures=args.fixtures or None).items())
+    model_seeds = models.make_seeds()
+    jobs, counts = _jobs(args, gsc_seeds, model_seeds)
+    outcomes = sum(len(job[4]) for job in jobs)
+    tally = Tally([name for name, _ in gsc_seeds])
+    pool = Pool(args.workers, (gsc_seeds, model_seeds, args.timeout, args.memory << 20, args.memory_floor << 20,
+                               args.memory_factor), args.timeout)
     done = [0]
 
     def record(*item) -> None:
         tally.record(*item)
         done[0] += 1
         if done[0] % 20_000 == 0:
-            print(f"{done[0]:,} of {len(jobs) * len(args.targets):,} outcomes, {time.monotonic() - tic:.0f} s",
-                  flush=True)
+            print(f"{done[0]:,} of {outcomes:,} outcomes, {time.monotonic() - tic:.0f} s", flush=True)
 
     try:
         pool.run(jobs, record)
@@ -308,22 +391,23 @@ def main(argv: list[str] | None = None) -> int:
     table = tally.table()
     config = {
         "command": "python scripts/fuzz.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "mutated_streams": args.cases, "truncations": truncations, "seeds": {n: len(d) for n, d in seeds},
-        "targets": args.targets, "workers": args.workers, "timeout": args.timeout, "memory_mib": args.memory,
+        "gsc_mutated": counts["gsc_mutated"], "gsc_truncations": counts["gsc_truncations"],
+        "gsc_cli": counts["gsc_cli"], "model_cases": counts["model_cases"], "model_cli": counts["model_cli"],
+        "gsc_seeds": {n: len(d) for n, d in gsc_seeds},
+        "model_seeds": {k: sum(len(v) for v in s.files.values()) for k, s in model_seeds.items()},
+        "workers": args.workers, "timeout": args.timeout, "memory_mib": args.memory,
+        "memory_floor_mib": args.memory_floor, "memory_factor": args.memory_factor,
         "seconds": time.monotonic() - tic,
     }
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    from gscodec_shac.atomic import write_atomic, write_json
-
     write_json(out / "fuzz.json", {"config": config, "table": table, "failures": tally.failures})
     write_atomic(out / "fuzz.md", markdown(table, config))
     print(markdown(table, config))
-    bad = [f for f in tally.failures]
-    for failure in bad[:20]:
-        print(f"{failure['kind']}: {failure['target']} of {failure['family']} case {failure['index']} of seed "
-              f"{failure['seed']}: {failure['detail']}")
-    return 1 if bad else 0
+    for failure in tally.failures[:20]:
+        print(f"{failure['kind']}: {failure['target']} of {failure['domain']} {failure['seed']} {failure['family']} "
+              f"case {failure['index']}: {failure['detail']}")
+    return 1 if tally.failures else 0
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ import io
 import json
 import math
 import os
+import stat
 import struct
 import tokenize
 import zipfile
@@ -78,9 +79,13 @@ def member_path(folder: str | os.PathLike, name: str, where: str, error: type[Gs
 def read_file(path: str | os.PathLike, limit: int, what: str, error: type[GscodecError] = ModelFormatError) -> bytes:
     """The bytes of the regular file ``path``, at most ``limit`` of them."""
     path = Path(path)
-    if not path.exists():
-        raise error(f"{path}: no such {what} file")
-    if not path.is_file():
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        raise error(f"{path}: no such {what} file") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    if not stat.S_ISREG(mode):
         raise error(f"{path}: is not a regular file, expected a {what} file")
     try:
         with open(path, "rb") as handle:

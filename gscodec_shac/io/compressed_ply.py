@@ -59,6 +59,9 @@ def read_compressed_ply(path: str | os.PathLike) -> GaussianCloud:
         check_layout(layout, path)
     except PlyFormatError as exc:
         raise ModelFormatError(str(exc)) from None
+    lists = [f"{e.name}.{p.name}" for e in layout.elements for p in e.properties if p.count_type]
+    if lists:
+        raise ModelFormatError(f"{path}: not a compressed PLY (list property {lists[0]}; every property is a scalar)")
     vertex_rows = layout.element("vertex").count if layout.element("vertex") else 0
     if vertex_rows > MAX_GAUSSIANS:
         raise ModelFormatError(f"{path}: {vertex_rows:,} Gaussians (at most {MAX_GAUSSIANS:,})")

@@ -135,7 +135,7 @@ def read_sog(path: str | os.PathLike) -> GaussianCloud:
 
     def load_file(name: str, limit: int) -> bytes:
         file = member_path(meta_path.parent, name, str(meta_path))
-        if not file.is_file():
+        if not os.path.lexists(file):
             raise ModelFormatError(f"{meta_path}: names {name}, which does not exist beside it")
         return read_file(file, limit, "SOG image")
 

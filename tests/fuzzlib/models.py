@@ -26,13 +26,12 @@ exception; exit status 70), ``crash`` (a signal), ``hang``, ``memory``.
 
 from __future__ import annotations
 
+import functools
 import gzip
 import io
 import json
 import os
 import struct
-import subprocess
-import sys
 import tempfile
 import time
 import zlib
@@ -52,7 +51,6 @@ FAMILIES = ("truncate", "bytes", "hostile")
 EVERY_OFFSET_BYTES = 4096
 #: Gaussians of every seed scene (SH degree 3).
 SEED_GAUSSIANS = 64
-REPO = Path(__file__).resolve().parents[2]
 
 
 @dataclass(frozen=True)
@@ -254,6 +252,7 @@ def _only(seed: Seed, suffix: str) -> str:
     return next(name for name in sorted(seed.files) if name.endswith(suffix))
 
 
+@functools.lru_cache(maxsize=8)
 def _gzip_bomb(size: int, prefix: bytes = b"") -> bytes:
     """gzip data inflating to ``prefix`` then zeros up to ``size`` bytes, made in 1 MiB steps."""
     packer = zlib.compressobj(9, zlib.DEFLATED, 31)
@@ -262,6 +261,13 @@ def _gzip_bomb(size: int, prefix: bytes = b"") -> bytes:
     for _ in range(max(0, size - len(prefix)) >> 20):
         parts.append(packer.compress(block))
     return b"".join(parts) + packer.flush()
+
+
+@functools.lru_cache(maxsize=2)
+def _deflate_bomb(size: int) -> bytes:
+    """Raw deflate data inflating to ``size`` zero bytes (a zip member's bomb)."""
+    packer = zlib.compressobj(9, zlib.DEFLATED, -15)
+    return b"".join(packer.compress(bytes(1 << 20)) for _ in range(size >> 20)) + packer.flush()
 
 
 def _spz_header_edit(seed, files, rng):
@@ -289,9 +295,7 @@ def _spz_bomb(seed, files, rng):
         struct.pack_into("<I", header, 8, 2**26)
         files["scene.spz"] = _gzip_bomb(64 << 20, bytes(header))
     elif choice == 1:  # 256 MiB of trailing zeros after a valid body
-        packer = zlib.compressobj(9, zlib.DEFLATED, 31)
-        files["scene.spz"] = packer.compress(body) + b"".join(packer.compress(bytes(1 << 20)) for _ in range(256)) \
-            + packer.flush()
+        files["scene.spz"] = _gzip_bomb(len(body) + (256 << 20), body)
     else:  # trailing garbage after the gzip stream
         files["scene.spz"] = files["scene.spz"] + b"garbage" * int(rng.integers(1, 100))
     return files, {}
@@ -341,6 +345,7 @@ def _sog_meta_edit(seed, files, rng):
     return files, {}
 
 
+@functools.lru_cache(maxsize=4)
 def _big_png(width: int, height: int, zeros: bool) -> bytes:
     """A PNG whose header declares ``width x height`` RGBA; its data are all zero rows (a bomb)
     when ``zeros``, else one short IDAT."""
@@ -403,11 +408,9 @@ def _zip_edit(zip_name: str) -> Edit:
         elif choice == 3:
             members[target] = rawzip.replace(member, size=int(_pick(rng, [0, len(member.stored) + 1, 2**31, 2**32 - 1])))
         elif choice == 4:  # a deflate bomb under a name the reader looks for
-            bomb = zlib.compressobj(9, zlib.DEFLATED, -15)
             raw_size = 256 << 20
-            stored = b"".join(bomb.compress(bytes(1 << 20)) for _ in range(raw_size >> 20)) + bomb.flush()
-            members[target] = rawzip.Member(member.name, stored, method=8, size=raw_size,
-                                            crc=zlib.crc32(bytes(0)), raw=b"")
+            members[target] = rawzip.Member(member.name, _deflate_bomb(raw_size), method=8, size=raw_size,
+                                            crc=0, raw=b"")
         elif choice == 5:
             members[target] = rawzip.deflated(member.name, member.stored)
             members[target] = rawzip.replace(members[target], stored=members[target].stored[: len(members[target].stored) // 2])
@@ -572,47 +575,12 @@ def run_case(seed: Seed, files: dict[str, bytes], links: dict[str, str]) -> Outc
 
 def run_cli(seed: Seed, files: dict[str, bytes], links: dict[str, str], *, timeout: float = 20.0,
             memory: str = "2G") -> Outcome:
-    """``gscodec-shac info PATH`` on the case in a child process (``$GSCODEC_MAX_MEMORY`` = ``memory``):
-    exit 0 valid; 2, 3 or 5 with one ``error:`` line and no traceback a clean error; 70 internal;
-    a signal a crash; past ``timeout`` a hang. ``peak_bytes``: the child's peak resident set."""
-    env = dict(os.environ, GSCODEC_MAX_MEMORY=memory, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
+    """``gscodec-shac info PATH`` on the case in a child process (see :func:`tests.fuzzlib.cli.run`)."""
+    from tests.fuzzlib import cli
+
     with tempfile.TemporaryDirectory(prefix="gscodec-fuzz-") as tmp:
         path = write_case(Path(tmp), seed, files, links)
-        tic = time.perf_counter()
-        with open(Path(tmp) / "stderr", "w+b") as err:
-            child = subprocess.Popen([sys.executable, "-m", "gscodec_shac", "info", str(path)], cwd=tmp, env=env,
-                                     stdout=subprocess.DEVNULL, stderr=err)
-            status, usage = _wait(child, timeout)
-            err.seek(0)
-            text = err.read().decode("utf-8", "replace")
-        seconds = time.perf_counter() - tic
-    peak = usage.ru_maxrss * 1024 if usage else 0
-    lines = [line for line in text.splitlines() if line.startswith("error:")]
-    if status is None:
-        return Outcome("hang", f"no exit within {timeout:g} s", seconds, peak)
-    if status < 0:
-        return Outcome("crash", f"signal {-status}: {text.strip()[-200:]}", seconds, peak)
-    if status == 0:
-        return Outcome("valid", "", seconds, peak)
-    if status in (2, 3, 5) and len(lines) == 1 and "Traceback" not in text:
-        return Outcome("error", f"exit {status}: {lines[0][:300]}", seconds, peak)
-    return Outcome("internal", f"exit {status}: {text.strip()[-300:]}", seconds, peak)
-
-
-def _wait(child: subprocess.Popen, timeout: float) -> tuple[int | None, Any]:
-    """The child's exit status (negative: a signal; None: killed after ``timeout``) and rusage."""
-    deadline = time.monotonic() + timeout
-    while True:
-        pid, status, usage = os.wait4(child.pid, os.WNOHANG)
-        if pid:
-            child.returncode = os.waitstatus_to_exitcode(status)
-            return child.returncode, usage
-        if time.monotonic() > deadline:
-            child.kill()
-            _, _, usage = os.wait4(child.pid, 0)
-            child.returncode = -9
-            return None, usage
-        time.sleep(0.01)
+        return cli.run(["info", str(path)], Path(tmp), timeout=timeout, memory=memory)
 
 
 def _short(exc: BaseException) -> str:
