@@ -80,16 +80,18 @@ def read_file(path: str | os.PathLike, limit: int, what: str, error: type[Gscode
     """The bytes of the regular file ``path``, at most ``limit`` of them."""
     path = Path(path)
     try:
-        mode = os.stat(path).st_mode
+        info = os.stat(path)
     except FileNotFoundError:
         raise error(f"{path}: no such {what} file") from None
     except OSError as exc:
         raise error(f"{path}: cannot be read ({exc.strerror or exc})") from None
-    if not stat.S_ISREG(mode):
+    if not stat.S_ISREG(info.st_mode):
         raise error(f"{path}: is not a regular file, expected a {what} file")
+    if info.st_size > limit:
+        raise error(f"{path}: the {what} file is larger than {format_bytes(limit)}, the most this reader accepts")
     try:
         with open(path, "rb") as handle:
-            data = handle.read(limit + 1)
+            data = handle.read(info.st_size + 1)  # a file that grew meanwhile shows as one byte too many
     except OSError as exc:
         raise error(f"{path}: cannot be read ({exc.strerror or exc})") from None
     if len(data) > limit:
@@ -201,10 +203,11 @@ class BoundedZip:
                                  f"{ZIP_METHODS[info.compress_type]} bytes, which no zip writer makes")
             members[name] = info
         total = sum(info.file_size for info in members.values())
-        cap = min(DEFLATE_MAX_RATIO * max(size, 1), memory_budget()) if max_total is None else max_total
+        cap = DEFLATE_MAX_RATIO * max(size, 1) if max_total is None else max_total
         if total > cap:
             raise self.error(f"{self.path}: the members declare {format_bytes(total)} in all, more than the "
                              f"{format_bytes(cap)} this file may hold")
+        check_memory(str(self.path), total, "inflating the zip members")
         return members
 
     def __enter__(self) -> "BoundedZip":
