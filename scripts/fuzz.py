@@ -277,27 +277,36 @@ class Tally:
 
 
 def markdown(table: list[dict[str, Any]], config: dict[str, Any]) -> str:
-    cols = ("cases", "valid", "clean_errors") + FAILURES
-    lines = ["| reader | family | target | cases | valid | clean errors | internal | memory | hangs | crashes "
-             "| max s | max peak MiB |", "|---|---|---|" + "---:|" * 9]
-    totals: Counter = Counter()
-    per_reader: Counter = Counter()
+    """One row per reader and family: in-process outcomes (both targets of a .gsc case count)
+    and CLI runs, the outcome classes over both, the slowest case and the largest peak growth."""
+    rows: dict[tuple[str, str], Counter] = defaultdict(Counter)
+    slowest: dict[tuple[str, str], list[float]] = defaultdict(lambda: [0.0, 0.0])
+    peak: dict[tuple[str, str], float] = defaultdict(float)
     for row in table:
-        lines.append(f"| {row['reader']} | {row['family']} | {row['target']} | "
-                     + " | ".join(f"{row[c]:,}" for c in cols) + f" | {row['max_seconds']:.2f} | {row['max_peak_mib']:.0f} |")
+        key, cli = (row["reader"], row["family"]), row["target"] == "cli"
+        rows[key]["cli" if cli else "inproc"] += row["cases"]
+        rows[key].update({c: row[c] for c in ("valid", "clean_errors") + FAILURES})
+        slowest[key][int(cli)] = max(slowest[key][int(cli)], row["max_seconds"])
+        if not cli:
+            peak[key] = max(peak[key], row["max_peak_mib"])
+    cols = ("inproc", "cli", "valid", "clean_errors") + FAILURES
+    lines = ["| reader | family | in-process | CLI | valid | clean errors | internal | memory | hangs | crashes "
+             "| max s (in-process / CLI) | max peak MiB |", "|---|---|" + "---:|" * 10]
+    totals: Counter = Counter()
+    for key in sorted(rows, key=lambda k: (k[0] != ".gsc", k[0], k[1])):
+        row = rows[key]
+        lines.append(f"| {key[0]} | {key[1]} | " + " | ".join(f"{row[c]:,}" for c in cols)
+                     + f" | {slowest[key][0]:.2f} / {slowest[key][1]:.2f} | {peak[key]:.0f} |")
         totals.update({c: row[c] for c in cols})
-        per_reader[row["reader"]] += row["cases"]
-    lines.append("| **all** | | | " + " | ".join(f"**{totals[c]:,}**" for c in cols) + " | | |")
-    lines.append("")
-    lines.append("Cases per reader: " + ", ".join(f"{reader} {count:,}" for reader, count in per_reader.items()) + ".")
+    lines.append("| **all** | | " + " | ".join(f"**{totals[c]:,}**" for c in cols) + " | | |")
     lines.append("")
     lines.append(f"{config['gsc_mutated']:,} mutated .gsc streams and {config['gsc_truncations']:,} truncations "
-                 f"({len(config['gsc_seeds'])} seeds) through decode and info, {config['gsc_cli']:,} through "
-                 f"`gscodec-shac decode`; {config['model_cases']:,} model cases in-process and {config['model_cli']:,} "
-                 f"through `gscodec-shac info`; {config['seconds']:.0f} s with {config['workers']} workers; limits "
-                 f"{config['timeout']:g} s and {config['memory_mib']:,} MiB of address space per case; a case counts "
-                 f"as memory when its peak grows past {config['memory_floor_mib']} MiB + {config['memory_factor']:g} x "
-                 f"its input bytes.")
+                 f"({len(config['gsc_seeds'])} seeds), each through decode and info in-process, {config['gsc_cli']:,} "
+                 f"of them through `gscodec-shac decode`; {config['model_cases']:,} model cases in-process and "
+                 f"{config['model_cli']:,} through `gscodec-shac info`; {config['seconds']:.0f} s with "
+                 f"{config['workers']} workers; limits {config['timeout']:g} s and {config['memory_mib']:,} MiB of "
+                 f"address space per case; a case counts as memory when its resident set grows past "
+                 f"{config['memory_floor_mib']} MiB + {config['memory_factor']:g} x its input bytes.")
     return "\n".join(lines) + "\n"
 
 
