@@ -1,4 +1,4 @@
-"""``gscodec-shac decode IN.gsc OUT.ply|.spz|.splat|.sog|.pt``: decompress a .gsc file; the extension picks the format."""
+"""``gscodec-shac decode IN.gsc OUT.ply|.spz|.splat|.sog|meta.json|.pt``: decompress a .gsc file; the extension picks the format."""
 
 from __future__ import annotations
 
@@ -13,14 +13,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         subparsers, "decode",
         help="decompress a .gsc file into a 3DGS PLY any viewer opens",
         description="Decode a .gsc file into a 3DGS model, written atomically; the output's extension picks "
-        "the format: .ply (Inria 3DGS, any viewer opens it), .spz, .splat, .sog or .pt (a gsplat checkpoint). "
+        "the format: .ply (Inria 3DGS, any viewer opens it), .spz, .splat, .sog or .pt (a gsplat checkpoint); "
+        "DIR/meta.json writes an unbundled SOG (meta.json and its WebP images in DIR). "
         "A dynamic model (a stream with a deformation network) decodes to a model directory: point_cloud.ply "
         "(canonical Gaussians), deformation.npz and deformation.json.",
         examples=["gscodec-shac decode scene.gsc decoded.ply", "gscodec-shac decode scene.gsc decoded.spz"],
     )
     parser.add_argument("input", metavar="IN.gsc", help="input .gsc")
-    parser.add_argument("output", metavar="OUT", help="output model: .ply (Inria 3DGS), .spz, .splat, .sog or .pt "
-                        "(gsplat checkpoint); a directory for a dynamic model")
+    parser.add_argument("output", metavar="OUT", help="output model: .ply (Inria 3DGS), .spz, .splat, .sog, "
+                        "DIR/meta.json (unbundled SOG) or .pt (gsplat checkpoint); a directory for a dynamic model")
     add_quiet(parser)
     add_force(parser)
     parser.set_defaults(func=run)

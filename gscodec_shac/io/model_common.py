@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import os
 import warnings
-from pathlib import Path
 
 import numpy as np
 
@@ -35,16 +34,12 @@ def note(message: str) -> None:
 
 
 def read_bytes(path: str | os.PathLike, what: str) -> bytes:
-    """The bytes of ``path``; a missing file or a folder raises naming ``what`` was expected."""
-    path = Path(path)
-    if not path.exists():
-        raise ModelFormatError(f"{path}: no such {what} file")
-    if not path.is_file():
-        raise ModelFormatError(f"{path}: is a directory, expected a {what} file")
-    try:
-        return path.read_bytes()
-    except OSError as exc:
-        raise ModelFormatError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    """The bytes of ``path`` (at most the memory budget); a missing file or a folder raises naming
+    ``what`` was expected (:func:`gscodec_shac.io.bounded.read_file`)."""
+    from gscodec_shac.io.bounded import read_file
+    from gscodec_shac.limits import memory_budget
+
+    return read_file(path, memory_budget(), what)
 
 
 def sigmoid(x: np.ndarray) -> np.ndarray:
