@@ -1,5 +1,7 @@
 """Fuzzing the ``.gsc`` readers: seed streams, reproducible mutations, one case, its outcome.
 
+(The test suite's fuzz library, :mod:`tests.fuzzlib`; it is not part of the installed package.)
+
 A case is ``(family, seed, index)``: the ``index``-th mutation of the seed stream ``seed``
 by ``family``, always the same bytes (the random generator is seeded by all three). The
 families (docs/reliability.md, "Fuzzing"):
@@ -20,9 +22,9 @@ families (docs/reliability.md, "Fuzzing"):
 :func:`run_case` feeds the bytes to a target (``decode``: :class:`~gscodec_shac.codec.Decoder`;
 ``info``: what ``gscodec-shac info`` does) and classifies the outcome: ``valid``, ``error``
 (one :class:`~gscodec_shac.errors.GscodecError`, the clean refusal) or ``crash`` (any other
-exception, i.e. a traceback a user would see). ``tests/test_fuzz.py`` runs a few thousand
-cases on every CI run; ``scripts/fuzz.py`` runs the long version in child processes with
-per-case time and memory limits.
+exception, i.e. a traceback a user would see). ``tests/test_fuzz.py`` runs a sample on every
+test run; ``scripts/fuzz.py`` runs the long version in child processes with per-case time and
+memory limits.
 """
 
 from __future__ import annotations
@@ -54,7 +56,7 @@ _DEEP_TOKEN = re.compile(f'"{_DEEP}(\\d+)"')
 #: Values a structured edit puts in place of a header value.
 _INTERESTING: tuple[Any, ...] = (
     None, True, False, 0, -1, 1, 2, 7, 255, 65535, 2**31, -2**31, 2**63, 2**64 + 1, 10**12, -10**12, 10**40,
-    0.5, -0.0, 1e-300, 1e308, -1e308, float("nan"), float("inf"), float("-inf"), "", "x", "-1", "1e9", "rgb",
+    10**400, -10**400, 0.5, -0.0, 1e-300, 1e308, -1e308, float("nan"), float("inf"), float("-inf"), "", "x", "-1", "1e9", "rgb",
     "mask", "tail", "hevc", "png", "zlib", "sh", "hi", "lo", "all", [], {}, [0], [1, 2], [-1, 0], [0, 2**40],
     {"a": 1}, [None], "\u0000", "\ud7ff" * 3,
 )
