@@ -262,14 +262,13 @@ def test_every_file_of_a_multi_file_input_is_protected(tmp_path, seeds):
 
 def test_a_dangling_symlink_output_is_kept_without_force(tmp_path, seeds):
     _write(tmp_path, seeds["spz3"])
-    (tmp_path / "out.ply").symlink_to(tmp_path / "missing.ply")
-    result = _cli("decode", "x.gsc", "out.ply", cwd=tmp_path)  # the input is missing: refused anyway
-    result = _cli("encode", "scene.spz", "out.gsc", cwd=tmp_path)
-    assert result.returncode == 0, result.stderr
     (tmp_path / "dangling.gsc").symlink_to(tmp_path / "nowhere.gsc")
     result = _cli("encode", "scene.spz", "dangling.gsc", cwd=tmp_path)
     assert result.returncode == 2 and "exists; pass --force" in result.stderr
     assert (tmp_path / "dangling.gsc").is_symlink() and not (tmp_path / "nowhere.gsc").exists()
+    result = _cli("encode", "scene.spz", "dangling.gsc", "--force", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert not (tmp_path / "dangling.gsc").is_symlink() and not (tmp_path / "nowhere.gsc").exists()
 
 
 def test_decode_writes_an_unbundled_sog(tmp_path, seeds):
