@@ -49,7 +49,7 @@ FAILURES = ("internal", "memory", "hang", "crash")
 
 
 class CaseTimeout(BaseException):
-    """A case ran past its time limit (raised by SIGALRM inside the worker)."""
+    """A case ran past its CPU-time limit (raised by SIGPROF inside the worker)."""
 
 
 # ------------------------------------------------------------------ worker
@@ -107,7 +107,8 @@ class Cases:
         return models.run_case(seed, *case)
 
 
-def worker_main(conn, gsc_seeds, model_seeds, timeout: float, memory: int, floor: int, factor: float) -> None:
+def worker_main(conn, gsc_seeds, model_seeds, timeout: float, memory: int, floor: int, factor: float,
+                cli: bool) -> None:
     """Run the cases the parent sends, one at a time, and answer with one result per target."""
     import resource
 
@@ -116,13 +117,17 @@ def worker_main(conn, gsc_seeds, model_seeds, timeout: float, memory: int, floor
     def alarm(signum, frame):
         raise CaseTimeout()
 
-    signal.signal(signal.SIGALRM, alarm)
+    signal.signal(signal.SIGPROF, alarm)  # CPU time: a loaded machine does not make hangs
     cases = Cases(gsc_seeds, model_seeds, timeout)
     # load the codec libraries and the readers before the limit is set; the CLI's own size
     cases.run(("gsc", "bytes", 0, 0, ()), gsc_seeds[0][1], "decode")
     for key, seed in model_seeds.items():
         cases.run(("model", "bytes", key, 0, ()), (dict(seed.files), {}), "read")
-    cli_base = cases.run(("model", "bytes", "sogdir", 0, ()), (dict(model_seeds["sogdir"].files), {}), "cli").peak_bytes
+    # the CLI's own peak on each clean seed: what start-up and a clean read of that format need
+    cli_base = {key: cases.run(("model", "bytes", key, 0, ()), (dict(seed.files), {}), "cli").peak_bytes
+                for key, seed in model_seeds.items()} if cli else {}
+    if cli:
+        cli_base["gsc"] = cases.run(("gsc", "bytes", 0, 0, ()), gsc_seeds[0][1], "cli").peak_bytes
     limit = _status("VmSize") + memory
     resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     while True:
@@ -135,20 +140,20 @@ def worker_main(conn, gsc_seeds, model_seeds, timeout: float, memory: int, floor
             conn.send(("start", target))
             base = _status("VmRSS")
             peak_ok = _reset_peak()
-            signal.setitimer(signal.ITIMER_REAL, timeout if target != "cli" else 2 * timeout + 5)
+            signal.setitimer(signal.ITIMER_PROF, timeout if target != "cli" else 7 * timeout)
             try:
                 outcome = cases.run(job, case, target)
                 kind, detail, seconds = outcome.kind, outcome.detail, outcome.seconds
                 if target == "cli":
-                    peak = max(0, outcome.peak_bytes - cli_base)
+                    peak = max(0, outcome.peak_bytes - cli_base["gsc" if job[0] == "gsc" else job[2]])
                 else:
                     peak = max(0, _status("VmHWM") - base) if peak_ok else 0
             except CaseTimeout:
-                kind, detail, seconds, peak = "hang", f"over {timeout:g} s (in Python)", timeout, 0
+                kind, detail, seconds, peak = "hang", f"over {timeout:g} s of CPU time (in Python)", timeout, 0
             except MemoryError:
                 kind, detail, seconds, peak = "memory", "MemoryError", 0.0, 0
             finally:
-                signal.setitimer(signal.ITIMER_REAL, 0)
+                signal.setitimer(signal.ITIMER_PROF, 0)
             if kind in ("valid", "error") and peak > floor + factor * size:
                 kind, detail = "memory", f"peak {peak / 2**20:.0f} MiB for {size:,} input bytes ({detail or kind})"
             results.append((target, kind, detail, seconds, peak, size))
@@ -161,7 +166,7 @@ class Pool:
 
     def __init__(self, workers: int, args: tuple, timeout: float) -> None:
         self.args = args
-        self.deadline = 4 * timeout + 30.0
+        self.deadline = 8 * timeout + 30.0
         self.context = mp.get_context("spawn")
         self.slots = [self._start() for _ in range(workers)]
 
@@ -340,9 +345,30 @@ def _jobs(args, gsc_seeds, model_seeds) -> tuple[list[tuple], dict[str, int]]:
                 cli = [("model", family, key, index, ("cli",)) for index in range(0, count, step)][: args.cli_cases]
                 jobs += cli
                 counts["model_cli"] += len(cli)
+    if args.cli_only:
+        jobs = [job for job in jobs if job[4] == ("cli",)]
+        counts["gsc_mutated"] = counts["gsc_truncations"] = counts["model_cases"] = 0
     # interleave so that the slow CLI and bomb cases spread over the run
     jobs.sort(key=lambda job: zlib.crc32(repr(job).encode()))
     return jobs, counts
+
+
+def _merge(records: list[dict[str, Any]]) -> dict[str, Any]:
+    """One record of several runs: rows by (reader, family, target), the later run's kept."""
+    rows: dict[tuple, dict] = {}
+    failures: list[dict] = []
+    config = dict(records[0]["config"])
+    for record in records:
+        kept = {(r["reader"], r["family"], r["target"]) for r in record["table"]}
+        failures = [f for f in failures if ((".gsc" if f["domain"] == "gsc" else f["seed"]), f["family"], f["target"])
+                    not in kept] + record["failures"]
+        rows.update({(r["reader"], r["family"], r["target"]): r for r in record["table"]})
+        for key in ("gsc_mutated", "gsc_truncations", "gsc_cli", "model_cases", "model_cli"):
+            if record["config"][key]:
+                config[key] = record["config"][key]
+    config["seconds"] = sum(record["config"]["seconds"] for record in records)
+    config["command"] = " && ".join(record["config"]["command"] for record in records)
+    return {"config": config, "table": list(rows.values()), "failures": failures}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -364,14 +390,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--memory-factor", type=float, default=64.0,
                         help="and this many times its input bytes on top (default 64)")
     parser.add_argument("--no-truncations", action="store_true", help="skip the truncations")
-    parser.add_argument("--from-json", metavar="FUZZ_JSON", help="only rewrite the table of an earlier run's fuzz.json")
+    parser.add_argument("--cli-only", action="store_true", help="only the cases through the CLI")
+    parser.add_argument("--from-json", metavar="FUZZ_JSON", nargs="+",
+                        help="only rewrite the table of earlier runs' fuzz.json (several: merged into --out, a later "
+                             "run's rows replacing an earlier one's of the same reader, family and target)")
     args = parser.parse_args(argv)
     from gscodec_shac.atomic import write_atomic, write_json
 
     if args.from_json:
-        record = json.loads(Path(args.from_json).read_text())
+        record = _merge([json.loads(Path(path).read_text()) for path in args.from_json])
+        if len(args.from_json) > 1:
+            write_json(Path(args.out) / "fuzz.json", record)
         text = markdown(record["table"], record["config"])
-        write_atomic(Path(args.from_json).with_name("fuzz.md"), text)
+        write_atomic((Path(args.out) if len(args.from_json) > 1 else Path(args.from_json[0]).parent) / "fuzz.md", text)
         print(text)
         return 0
     os.environ.setdefault("MALLOC_ARENA_MAX", "2")  # glibc arenas reserve 64 MiB of address space per thread
@@ -384,7 +415,7 @@ def main(argv: list[str] | None = None) -> int:
     outcomes = sum(len(job[4]) for job in jobs)
     tally = Tally([name for name, _ in gsc_seeds])
     pool = Pool(args.workers, (gsc_seeds, model_seeds, args.timeout, args.memory << 20, args.memory_floor << 20,
-                               args.memory_factor), args.timeout)
+                               args.memory_factor, args.cli_cases > 0), args.timeout)
     done = [0]
 
     def record(*item) -> None:

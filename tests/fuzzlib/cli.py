@@ -2,8 +2,10 @@
 
 Exit status 0 is ``valid``; 2, 3 or 5 with exactly one ``error:`` line and no traceback is a
 clean ``error``; any other status (70: "this is a bug") is ``internal``; a signal is a
-``crash``; no exit within the time limit a ``hang`` (the child is killed). The child's peak
-resident set comes from ``wait4``; ``$GSCODEC_MAX_MEMORY`` sets its memory budget.
+``crash``; more than the time limit of CPU time (or six times it of wall time, when the child
+is killed) a ``hang``, so that a loaded machine does not make hangs. The child's peak resident
+set is its own ``VmHWM``, which it writes at exit (``wait4``'s ``ru_maxrss`` would include the
+parent's at the fork); ``$GSCODEC_MAX_MEMORY`` sets its memory budget.
 """
 
 from __future__ import annotations
@@ -19,23 +21,41 @@ from tests.fuzzlib.models import Outcome
 
 REPO = Path(__file__).resolve().parents[2]
 CLEAN_STATUSES = (2, 3, 5)
+#: Runs the CLI as ``python -m gscodec_shac`` does and writes the process's VmHWM (KiB) at exit.
+_BOOTSTRAP = """
+import atexit, os, runpy, sys
+def _peak():
+    with open("/proc/self/status") as status:
+        kib = [line.split()[1] for line in status if line.startswith("VmHWM")]
+    with open(os.environ["GSCODEC_FUZZ_PEAK"], "w") as out:
+        out.write(kib[0] if kib else "0")
+atexit.register(_peak)
+sys.argv[0] = "gscodec-shac"
+runpy.run_module("gscodec_shac", run_name="__main__", alter_sys=True)
+"""
 
 
 def run(args: list[str], cwd: Path, *, timeout: float = 20.0, memory: str = "2G") -> Outcome:
     """Run ``python -m gscodec_shac ARGS`` in ``cwd`` and classify its outcome."""
-    env = dict(os.environ, GSCODEC_MAX_MEMORY=memory, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
+    peak_file = cwd / ".peak"
+    env = dict(os.environ, GSCODEC_MAX_MEMORY=memory, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1",
+               GSCODEC_FUZZ_PEAK=str(peak_file))
     tic = time.perf_counter()
     with open(cwd / ".stderr", "w+b") as err:
-        child = subprocess.Popen([sys.executable, "-m", "gscodec_shac", *args], cwd=cwd, env=env,
+        child = subprocess.Popen([sys.executable, "-c", _BOOTSTRAP, *args], cwd=cwd, env=env,
                                  stdout=subprocess.DEVNULL, stderr=err, stdin=subprocess.DEVNULL)
-        status, usage = _wait(child, timeout)
+        status, usage = _wait(child, 6 * timeout)
         err.seek(0)
         text = err.read().decode("utf-8", "replace")
     seconds = time.perf_counter() - tic
-    peak = usage.ru_maxrss * 1024 if usage else 0
+    cpu = usage.ru_utime + usage.ru_stime if usage else 0.0
+    try:
+        peak = int(peak_file.read_text() or 0) * 1024
+    except (OSError, ValueError):
+        peak = 0
     lines = [line for line in text.splitlines() if line.startswith("error:")]
-    if status is None:
-        return Outcome("hang", f"no exit within {timeout:g} s", seconds, peak)
+    if status is None or cpu > timeout:
+        return Outcome("hang", f"{cpu:.1f} s of CPU, {seconds:.1f} s of wall time", seconds, peak)
     if status < 0:
         return Outcome("crash", f"signal {-status}: {text.strip()[-200:]}", seconds, peak)
     if status == 0:
