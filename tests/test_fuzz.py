@@ -40,7 +40,9 @@ def _check(outcomes: list[tuple[str, str, int, fuzz.Outcome]]) -> Counter:
     crashes = [f"{target} of {where} case {index}: {o.detail}" for target, where, index, o in outcomes
                if o.kind not in ("valid", "error")]
     assert not crashes, f"{len(crashes)} crashes, first: {crashes[:5]}"
-    slow = [(target, where, index, o.seconds) for target, where, index, o in outcomes if o.seconds > CASE_SECONDS]
+    # a child process is judged by its CPU time (tests/fuzzlib/cli.py: past the limit it is a hang)
+    slow = [(target, where, index, o.seconds) for target, where, index, o in outcomes
+            if o.seconds > CASE_SECONDS and target != "cli"]
     assert not slow, f"cases slower than {CASE_SECONDS} s: {slow[:5]}"
     return kinds
 
