@@ -27,7 +27,7 @@ from gscodec_shac.io.ply import cloud_to_structured, read_ply, write_ply
 ROOT = Path(__file__).resolve().parents[1]
 STREAMS = sorted((ROOT / "tests" / "fixtures" / "streams").glob("v*/*.gsc"))
 #: Modules a decode has no use for (numba's import and cache loading cost seconds).
-NOT_FOR_DECODE = ("numba", "sorting.plas", "sorting._kernels", "sorting.api", "gscodec_shac.codec._kernels",
+NOT_FOR_DECODE = ("numba", "sorting.plas", "sorting._kernels", "sorting.api",
                   "gscodec_shac.render.raster", "gscodec_shac.train.model")
 
 
