@@ -7,7 +7,8 @@ its children, from ``os.wait4``) and peak RSS:
 * ``encode``: ``gscodec-shac encode -r RATE_POINT --sh pca --er 0.97``;
 * ``decode``: the stream back to a PLY; ``decode_arrays``: the stream to arrays only
   (the :class:`~gscodec_shac.codec.Decoder` in a fresh interpreter, no file written);
-* ``target``: ``encode --target-bpg B`` (skipped with ``--no-target``);
+* ``target_bpg``: ``encode --target-bpg B`` (the controller picks the SH settings; skipped
+  with ``--no-target``);
 * ``spz_write`` / ``spz_read``: ``splat-transform`` PLY -> SPZ and SPZ -> PLY of the same
   file (skipped, with a line saying why, when node or the tool is absent);
 
@@ -112,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
         if not args.no_target:
             target = record(size, "target_bpg", measured(
                 [*cli, "encode", str(ply), str(args.out / size / f"s{size}_target.gsc"), "--target-bpg",
-                 str(args.target_bpg), "--sh", "pca", "--er", "0.97", "--force"], args.nice))
+                 str(args.target_bpg), "--force"], args.nice))
             print(f"{size:>5} ratio target / encode: {target['wall_s'] / enc['wall_s']:.2f} (wall), "
                   f"{target['cpu_s'] / enc['cpu_s']:.2f} (cpu)")
         if peer is not None:
