@@ -13,6 +13,7 @@ its children, from ``os.wait4``) and peak RSS:
   file (skipped, with a line saying why, when node or the tool is absent);
 
 plus ``startup``: ``gscodec-shac decode`` of a 300-Gaussian fixture stream (start-up cost).
+``--baseline ../main`` runs every decode step under that checkout too, right before ours.
 Ratios (target / encode, decode / spz_read, encode / spz_write) are printed; all rows go
 to ``OUT/bench_speed.json`` and ``.csv`` with the load average at each step.
 
@@ -56,9 +57,10 @@ def label(n: int) -> str:
     return f"{n // 1_000_000}M" if n % 1_000_000 == 0 else f"{n // 1000}k"
 
 
-def measured(command: list[str], nice: int) -> dict:
-    """Run ``command``: wall seconds, CPU seconds and peak RSS (GB) of that child alone (``os.wait4``)."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+def measured(command: list[str], nice: int, root: Path = ROOT) -> dict:
+    """Run ``command`` with the checkout ``root`` first on the path: wall seconds, CPU seconds and
+    peak RSS (GB) of that child alone (``os.wait4``)."""
+    env = {**os.environ, "PYTHONPATH": str(root) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     load = os.getloadavg()[0]
     tic = time.perf_counter()
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
@@ -83,6 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-target", action="store_true", help="skip the --target-bpg encodes")
     parser.add_argument("--no-peer", action="store_true", help="skip splat-transform")
     parser.add_argument("--nice", type=int, default=5, help="niceness of the measured processes")
+    parser.add_argument("--baseline", type=Path, help="another checkout: its decodes run right before ours (paired)")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     cli = [sys.executable, "-m", "gscodec_shac"]
@@ -94,12 +97,16 @@ def main(argv: list[str] | None = None) -> int:
     def record(size: str, step: str, result: dict) -> dict:
         row = {"size": size, "step": step, **result}
         rows.append(row)
-        print(f"{size:>5} {step:<14} wall {row['wall_s']:8.2f} s  cpu {row.get('cpu_s', float('nan')):8.2f} s  "
+        print(f"{size:>5} {step:<23} wall {row['wall_s']:8.2f} s  cpu {row.get('cpu_s', float('nan')):8.2f} s  "
               f"peak {row.get('peak_rss_gb', float('nan')):6.2f} GB  load {row['load']:.1f}", flush=True)
         return row
 
-    with_tiny = args.out / "tiny.ply"
-    record("300", "startup", measured([*cli, "decode", str(TINY), str(with_tiny), "--force"], args.nice))
+    def decode_step(size: str, step: str, command: list[str]) -> dict:
+        if args.baseline is not None:
+            record(size, step + "@baseline", measured(command, args.nice, args.baseline.resolve()))
+        return record(size, step, measured(command, args.nice))
+
+    decode_step("300", "startup", [*cli, "decode", str(TINY), str(args.out / "tiny.ply"), "--force"])
     for n in (parse_size(s) for s in args.sizes.split(",")):
         size = label(n)
         ply, gsc, dec = (args.out / size / f"s{size}{ext}" for ext in (".ply", ".gsc", "_dec.ply"))
@@ -108,8 +115,8 @@ def main(argv: list[str] | None = None) -> int:
             measured([*cli, "synthetic", str(ply), "-n", str(n), "--views", "4", "-q", "--force"], args.nice)
         point = ["-r", args.rate_point, "--sh", "pca", "--er", "0.97", "--force"]
         enc = record(size, "encode", measured([*cli, "encode", str(ply), str(gsc), *point], args.nice))
-        record(size, "decode_arrays", measured([sys.executable, "-c", DECODE_ARRAYS, str(gsc)], args.nice))
-        decode = record(size, "decode", measured([*cli, "decode", str(gsc), str(dec), "--force"], args.nice))
+        decode_step(size, "decode_arrays", [sys.executable, "-c", DECODE_ARRAYS, str(gsc)])
+        decode = decode_step(size, "decode", [*cli, "decode", str(gsc), str(dec), "--force"])
         if not args.no_target:
             target = record(size, "target_bpg", measured(
                 [*cli, "encode", str(ply), str(args.out / size / f"s{size}_target.gsc"), "--target-bpg",
