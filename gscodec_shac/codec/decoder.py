@@ -94,12 +94,14 @@ class Decoder:
             for name, entry in view.attributes.items() if entry.coding == "planes"
         }
         values.update(set_values)
+        del planes, tasks, futures  # the coded planes are not needed past here (peak memory)
         ycbcr = view.color == "ycbcr"
         out = {name: ATTRIBUTES[name].inverse(values[name], ycbcr) for name in ATTRIBUTES if name in values}
         sh_dc = out.get("sh_dc")
-        sh_rest = np.zeros((n, sh_index.num_rest_coeffs(degree), 3), dtype=np.float32)
-        if view.sh is not None:
-            features = values.get("sh", np.zeros((n, 0)))
+        if view.sh is None:
+            sh_rest = np.zeros((n, sh_index.num_rest_coeffs(degree), 3), dtype=np.float32)
+        else:
+            features = values.pop("sh", np.zeros((n, 0)))
             if view.sh.ycbcr:
                 features = qz.triplets_from_ycbcr(features)
             if not view.sh.lossless:
