@@ -126,8 +126,8 @@ def main(argv: list[str] | None = None) -> int:
         if peer is not None:
             spz = args.out / size / f"s{size}.spz"
             write = record(size, "spz_write", measured([str(peer), "-w", "-q", str(ply), str(spz)], args.nice))
-            read = record(size, "spz_read", measured([str(peer), "-w", "-q", str(spz), str(args.out / size / f"s{size}_spz.ply")],
-                                                      args.nice))
+            back = args.out / size / f"s{size}_spz.ply"
+            read = record(size, "spz_read", measured([str(peer), "-w", "-q", str(spz), str(back)], args.nice))
             print(f"{size:>5} ratio decode / spz_read: {decode['wall_s'] / read['wall_s']:.2f} (wall), "
                   f"{decode['cpu_s'] / read['cpu_s']:.2f} (cpu); encode / spz_write: "
                   f"{enc['wall_s'] / write['wall_s']:.2f} (wall)")

@@ -79,7 +79,8 @@ class Decoder:
         with ThreadPoolExecutor(self.workers) as pool:
             futures = {i: pool.submit(tasks[i].decode) for i in biggest_first}
             # Set-coded positions (LZMA and numpy) decode beside the grid planes.
-            set_futures = {name: pool.submit(_position_set, stream.chunk(e.chunks[0]), e, n) for name, e in sets.items()}
+            set_futures = {name: pool.submit(_position_set, stream.chunk(e.chunks[0]), e, n)
+                           for name, e in sets.items()}
             for _ in tqdm(as_completed(futures.values()), total=len(tasks), desc="decode", unit="chunk",
                           disable=not self.progress, leave=False):
                 pass

@@ -231,7 +231,8 @@ class Encoder:
     def _code_position_set(self, values: np.ndarray, spec: AttributeSpec, stream: Bitstream) -> dict:
         """Positions as a Morton-sorted set (:mod:`.positions`); the grid order is their Morton order."""
         quantizer = qz.Quantizer.fit(values, spec.bits)
-        data = self._cached(f"positions-{spec.bits}", lambda: encode_sorted_codes(morton_encode(quantizer.quantize(values))))
+        data = self._cached(f"positions-{spec.bits}",
+                            lambda: encode_sorted_codes(morton_encode(quantizer.quantize(values))))
         stream.require("positions_set")
         stream.add_chunk("positions", data, attribute="positions", encoding="morton_set", bits=spec.bits)
         return {"chunks": ["positions"], "channels": 3, "coding": "set", "transform": ATTRIBUTES["positions"].transform,
