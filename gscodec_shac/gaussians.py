@@ -211,9 +211,10 @@ def _as_float32(name: str, value: np.ndarray) -> np.ndarray:
 
 
 def _check_finite(name: str, array: np.ndarray) -> None:
-    finite = np.isfinite(array)
-    if finite.all():
+    # min and max propagate NaN and reach +-inf: two allocation-free passes decide the common case.
+    if array.size == 0 or (np.isfinite(array.min()) and np.isfinite(array.max())):
         return
+    finite = np.isfinite(array)
     bad_rows = np.nonzero(~finite.reshape(finite.shape[0], -1).all(axis=1))[0]
     count = int((~finite).sum())
     shown = ", ".join(str(i) for i in bad_rows[:5]) + (", ..." if bad_rows.size > 5 else "")

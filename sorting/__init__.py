@@ -4,28 +4,44 @@ A standalone package (numpy, numba, tqdm): no dependency on the codec.
 
     order = sort_to_grid(prepare_features({"xyz": xyz, "dc": dc}))   # (H*W,) rows per cell, -1 empty
     grid = apply_order(values, order, shape=(H, W))                  # (H, W, ...) grid of any attribute
+
+The names below are imported on first use (PEP 562), so ``import sorting.morton`` or
+``sorting.grid`` (pure numpy, what a decoder needs) does not import numba and the
+compiled sorting kernels.
 """
 
-from sorting.api import METHODS, sort_to_grid
-from sorting.errors import SortingError
-from sorting.features import prepare_features
-from sorting.grid import apply_order, grid_shape, grid_to_values, invert_order, select_for_grid
-from sorting.metrics import neighbour_distance, vad
-from sorting.morton import morton_order
-from sorting.plas import PlasSchedule
+from __future__ import annotations
 
-__all__ = [
-    "METHODS",
-    "PlasSchedule",
-    "SortingError",
-    "apply_order",
-    "grid_shape",
-    "grid_to_values",
-    "invert_order",
-    "morton_order",
-    "neighbour_distance",
-    "prepare_features",
-    "select_for_grid",
-    "sort_to_grid",
-    "vad",
-]
+import importlib
+from typing import Any
+
+#: Public name -> the submodule defining it.
+_WHERE = {
+    "METHODS": "api",
+    "sort_to_grid": "api",
+    "SortingError": "errors",
+    "prepare_features": "features",
+    "apply_order": "grid",
+    "grid_shape": "grid",
+    "grid_to_values": "grid",
+    "invert_order": "grid",
+    "select_for_grid": "grid",
+    "neighbour_distance": "metrics",
+    "vad": "metrics",
+    "morton_order": "morton",
+    "PlasSchedule": "plas",
+}
+
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _WHERE:
+        raise AttributeError(f"module 'sorting' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"sorting.{_WHERE[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_WHERE))

@@ -75,28 +75,34 @@ class Decoder:
         tasks = [_ChunkTask(plan, stream.chunk(plan.name), codecs[plan.codec], shape) for plan in view.chunks]
         # Largest chunks first (the SH grid dominates), so no worker is left with it at the end.
         biggest_first = sorted(range(len(tasks)), key=lambda i: -len(tasks[i].chunk.data))
+        sets = {name: entry for name, entry in view.attributes.items() if entry.coding == "set"}
         with ThreadPoolExecutor(self.workers) as pool:
             futures = {i: pool.submit(tasks[i].decode) for i in biggest_first}
+            # Set-coded positions (LZMA and numpy) decode beside the grid planes.
+            set_futures = {name: pool.submit(_position_set, stream.chunk(e.chunks[0]), e, n)
+                           for name, e in sets.items()}
             for _ in tqdm(as_completed(futures.values()), total=len(tasks), desc="decode", unit="chunk",
                           disable=not self.progress, leave=False):
                 pass
             planes = [futures[i].result() for i in range(len(tasks))]
+            set_values = {name: future.result() for name, future in set_futures.items()}
         # After the planes: a header that declares a huge grid over small pictures fails in the
         # codec's picture-size check before the grid's z-order is computed (seconds at 25M cells).
         cells = occupied_cells(view.padding, shape, n, mask)
         values = {
-            name: _assemble(entry, [(t, p) for t, p in zip(tasks, planes) if t.plan.attribute == name], shape, cells)
+            name: _assemble(entry, [(t, p) for t, p in zip(tasks, planes) if t.plan.attribute == name], shape, cells,
+                            self.workers)
             for name, entry in view.attributes.items() if entry.coding == "planes"
         }
-        for name, entry in view.attributes.items():
-            if entry.coding == "set":
-                values[name] = _position_set(stream.chunk(entry.chunks[0]), entry, n)
+        values.update(set_values)
+        del planes, tasks, futures  # the coded planes are not needed past here (peak memory)
         ycbcr = view.color == "ycbcr"
         out = {name: ATTRIBUTES[name].inverse(values[name], ycbcr) for name in ATTRIBUTES if name in values}
         sh_dc = out.get("sh_dc")
-        sh_rest = np.zeros((n, sh_index.num_rest_coeffs(degree), 3), dtype=np.float32)
-        if view.sh is not None:
-            features = values.get("sh", np.zeros((n, 0)))
+        if view.sh is None:
+            sh_rest = np.zeros((n, sh_index.num_rest_coeffs(degree), 3), dtype=np.float32)
+        else:
+            features = values.pop("sh", np.zeros((n, 0)))
             if view.sh.ycbcr:
                 features = qz.triplets_from_ycbcr(features)
             if not view.sh.lossless:
@@ -137,15 +143,20 @@ def _position_set(chunk: Chunk, entry: AttributeEntry, n: int) -> np.ndarray:
     return entry.quantizer.dequantize(morton_decode(codes))
 
 
-def _assemble(entry: AttributeEntry, decoded: list, shape: tuple[int, int], cells: np.ndarray) -> np.ndarray:
+def _assemble(entry: AttributeEntry, decoded: list, shape: tuple[int, int], cells: np.ndarray,
+              workers: int = 1) -> np.ndarray:
     """Decoded planes of one attribute's chunks -> (N, C) values of the occupied ``cells`` (floats; labels as floats)."""
     count = entry.channels
-    q = np.zeros((count, *shape), dtype=np.uint16)
-    for task, planes in decoded:
-        plan = task.plan
-        q[plan.start : plan.stop] |= (planes << 8) if plan.part == "hi" else planes
+    whole = len(decoded) == 1 and decoded[0][0].plan.part == "all" and decoded[0][1].shape[0] == count
+    if whole:  # one chunk holds every plane as it is: no copy
+        q = decoded[0][1]
+    else:
+        q = np.zeros((count, *shape), dtype=np.uint16)
+        for task, planes in decoded:
+            plan = task.plan
+            q[plan.start : plan.stop] |= (planes << 8) if plan.part == "hi" else planes
     if entry.quantizer is not None:
-        return entry.quantizer.dequantize_cells(q.reshape(count, -1), cells)
+        return entry.quantizer.dequantize_cells(q.reshape(count, -1), cells, workers)
     rows = occupied(q.reshape(count, -1), cells)
     bits = entry.bits
     if rows.size and int(rows.max()) >= 1 << bits:

@@ -104,6 +104,7 @@ class Encoder:
         self._codecs: dict[tuple, tuple[GridCodec, int]] = {}
         self._jobs: list[_Job] = []
         self._chunk_cache = chunk_cache
+        self._work_key: str | None = None
 
     # ---------------------------------------------------------------- main
     def grid_order(self, cloud: GaussianCloud) -> GridOrder:
@@ -125,15 +126,12 @@ class Encoder:
         """
         rp = self.rate_point
         self._codecs, self._jobs, self.timings_ = {}, [], {}
-        with self._timed("prune"):
-            kept = kept_rows(cloud, rp.min_opacity)
-            work = cloud if kept.size == cloud.num_gaussians else cloud.select(kept)
+        # With a shared cache (the rate controller's trials), the placement, the SH features and
+        # the position set of equal pruning and sorting settings are computed once.
+        self._work_key = _work_key(rp) if self._chunk_cache is not None and grid is None else None
         with self._timed("sort"):
-            grid = self._plan(work) if grid is None else check_grid(grid, work)
-            cells = grid.cells()
-            rows = grid.order[cells]
-            grid_cloud = work.select(rows)
-            self.order_ = kept[rows]
+            kept, grid, cells, grid_cloud = self._cached("grid", lambda: self._placement(cloud, grid))
+            self.order_ = kept[grid.order[cells]]
         with self._timed("sh_stage"):
             stage, features = self._sh_features(grid_cloud)
 
@@ -188,6 +186,24 @@ class Encoder:
         }
         return stream
 
+    def _placement(self, cloud: GaussianCloud, grid: GridOrder | None) -> tuple:
+        """Prune and place on the grid: (kept rows, grid order, occupied cells, the cloud in grid order)."""
+        with self._timed("prune"):
+            kept = kept_rows(cloud, self.rate_point.min_opacity)
+            work = cloud if kept.size == cloud.num_gaussians else cloud.select(kept)
+        grid = self._plan(work) if grid is None else check_grid(grid, work)
+        cells = grid.cells()
+        return kept, grid, cells, work.select(grid.order[cells])
+
+    def _cached(self, what: str, compute: Any) -> Any:
+        """``compute()``, kept in the shared cache under this encode's pruning and sorting settings."""
+        if self._work_key is None:
+            return compute()
+        key = ("__work__", what, self._work_key)
+        if key not in self._chunk_cache:  # type: ignore[operator]
+            self._chunk_cache[key] = compute()  # type: ignore[index]
+        return self._chunk_cache[key]  # type: ignore[index]
+
     @contextmanager
     def _timed(self, step: str) -> Iterator[None]:
         tic = time.perf_counter()
@@ -207,16 +223,18 @@ class Encoder:
         fit = self.fit_stage or self._stage_instance is None
         if fit and stage.uses_positions:
             stage.set_positions(cloud.means)
-        features = stage.fit_transform(ac) if fit else stage.transform(ac)
-        return stage, np.asarray(features)
+        if fit:
+            return stage, np.asarray(stage.fit_transform(ac))
+        # a fitted caller's stage transforms the same cloud to the same features: once per placement
+        return stage, self._cached(f"features-{id(self._stage_instance)}", lambda: np.asarray(stage.transform(ac)))
 
     def _code_position_set(self, values: np.ndarray, spec: AttributeSpec, stream: Bitstream) -> dict:
         """Positions as a Morton-sorted set (:mod:`.positions`); the grid order is their Morton order."""
         quantizer = qz.Quantizer.fit(values, spec.bits)
-        codes = morton_encode(quantizer.quantize(values))
+        data = self._cached(f"positions-{spec.bits}",
+                            lambda: encode_sorted_codes(morton_encode(quantizer.quantize(values))))
         stream.require("positions_set")
-        stream.add_chunk("positions", encode_sorted_codes(codes), attribute="positions", encoding="morton_set",
-                         bits=spec.bits)
+        stream.add_chunk("positions", data, attribute="positions", encoding="morton_set", bits=spec.bits)
         return {"chunks": ["positions"], "channels": 3, "coding": "set", "transform": ATTRIBUTES["positions"].transform,
                 "quantizer": quantizer.to_json()}
 
@@ -315,6 +333,13 @@ class Encoder:
         if key not in self._codecs:
             self._codecs[key] = (get_codec(name, **options), len(self._codecs))
         return self._codecs[key]
+
+
+def _work_key(rp: RatePoint) -> str:
+    """What decides the grid placement (hence the cloud in grid order): pruning and sorting settings."""
+    positions = rp.attributes["positions"]
+    return json.dumps([rp.min_opacity, rp.positions_as_set, positions.bits if rp.positions_as_set else None,
+                       rp.sort.to_json(), rp.sort.multiple], sort_keys=True, default=str)
 
 
 def _cache_key(job: _Job) -> tuple:

@@ -25,7 +25,6 @@ from __future__ import annotations
 import lzma
 import struct
 
-import numba
 import numpy as np
 
 from gscodec_shac.errors import BitstreamError, ValidationError
@@ -129,42 +128,81 @@ def _bit_lengths(values: np.ndarray) -> np.ndarray:
 
 
 def _pack_mantissas(gaps: np.ndarray, lengths: np.ndarray) -> bytes:
-    """The ``k - 1`` bits below the leading one of each gap, most significant first, as one bit string."""
+    """The ``k - 1`` bits below the leading one of each gap, most significant first, as one bit string.
+
+    Whole-array numpy: each field (at most 62 bits, starting at bit offset ``o <= 7`` of its
+    first byte) lies in a 72-bit window of 9 bytes; the fields do not overlap, so adding the
+    windows' bytes (``np.bincount``) sets every bit once.
+    """
+    gaps = np.asarray(gaps, dtype=np.uint64)
+    lengths = np.asarray(lengths, dtype=np.int64)
     total = int(np.maximum(lengths - 1, 0).sum())
-    out = np.zeros((total + 7) // 8, dtype=np.uint8)
-    _pack_kernel(gaps.astype(np.uint64), lengths.astype(np.int64), out)
-    return out.tobytes()
+    out = np.zeros((total + 7) // 8 + 9, dtype=np.int64)
+    base = 0
+    for start in range(0, lengths.size, _UNPACK_BLOCK):
+        width = np.maximum(lengths[start : start + _UNPACK_BLOCK] - 1, 0)
+        ends = np.cumsum(width) + base
+        _add_fields(out, gaps[start : start + _UNPACK_BLOCK], ends - width, width)
+        base = int(ends[-1])
+    return out[: (total + 7) // 8].astype(np.uint8).tobytes()
+
+
+def _add_fields(out: np.ndarray, gaps: np.ndarray, first: np.ndarray, width: np.ndarray) -> None:
+    """Add to the bytes ``out`` the low ``width`` bits of ``gaps``, MSB first from bit offsets ``first``."""
+    m = width.astype(np.uint64)
+    value = gaps & ((np.uint64(1) << m) - np.uint64(1))  # m <= 62: no shift by 64
+    shift = np.int64(72) - (first & 7) - width  # the field's place in its 72-bit window, 3..72
+    up = np.minimum(np.maximum(shift - 8, 0), 63).astype(np.uint64)
+    down = np.maximum(8 - shift, 0).astype(np.uint64)
+    high = np.where(shift >= 8, value << up, value >> down)  # window bits 71..8: bytes 0..7
+    low = np.where(shift < 8, (value << np.minimum(shift, 7).astype(np.uint64)) & np.uint64(0xFF), np.uint64(0))
+    window = np.empty((gaps.size, 9), dtype=np.uint8)
+    window[:, :8] = high.astype(">u8").view(np.uint8).reshape(-1, 8)
+    window[:, 8] = low
+    byte = first >> 3
+    lo = int(byte[0]) if byte.size else 0
+    index = (byte[:, None] - lo + np.arange(9)).reshape(-1)
+    added = np.bincount(index, weights=window.reshape(-1), minlength=0)
+    out[lo : lo + added.size] += added.astype(np.int64)
 
 
 def _unpack_mantissas(data: bytes, lengths: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`_pack_mantissas`: the gaps, leading ones restored."""
+    """Inverse of :func:`_pack_mantissas`: the gaps, leading ones restored (whole-array numpy, no compiled kernel).
+
+    Each gap's ``m = k - 1`` bits start at bit ``s`` (the running sum of ``m``); the 64 bits
+    from byte ``s // 8`` plus the next byte hold them (``m <= 62``, ``s % 8 <= 7``).
+    """
     total = int(np.maximum(lengths - 1, 0).sum())
     if (total + 7) // 8 != len(data):
         raise BitstreamError(f"position set is corrupt ({len(data):,} mantissa bytes, {(total + 7) // 8:,} expected)")
+    lengths = np.asarray(lengths, dtype=np.int64)
     gaps = np.zeros(lengths.size, dtype=np.uint64)
-    _unpack_kernel(np.frombuffer(data, dtype=np.uint8), lengths.astype(np.int64), gaps)
+    raw = np.frombuffer(data + bytes(9), dtype=np.uint8)
+    base = 0
+    for start in range(0, lengths.size, _UNPACK_BLOCK):
+        block = lengths[start : start + _UNPACK_BLOCK]
+        width = np.maximum(block - 1, 0)
+        ends = np.cumsum(width) + base
+        gaps[start : start + _UNPACK_BLOCK] = _read_fields(raw, ends - width, block)
+        base = int(ends[-1])
     return gaps
 
 
-@numba.njit(cache=True)
-def _pack_kernel(gaps: np.ndarray, lengths: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - compiled
-    position = 0
-    for i in range(gaps.size):
-        for bit in range(lengths[i] - 2, -1, -1):
-            if (gaps[i] >> np.uint64(bit)) & np.uint64(1):
-                out[position >> 3] |= np.uint8(128 >> (position & 7))
-            position += 1
+#: Gaps unpacked per block in :func:`_unpack_mantissas` (bounds the (B, 9) byte windows).
+_UNPACK_BLOCK = 1 << 20
 
 
-@numba.njit(cache=True)
-def _unpack_kernel(data: np.ndarray, lengths: np.ndarray, gaps: np.ndarray) -> None:  # pragma: no cover - compiled
-    position = 0
-    for i in range(lengths.size):
-        k = lengths[i]
-        if k == 0:
-            continue
-        value = np.uint64(1)
-        for _ in range(k - 1):
-            value = (value << np.uint64(1)) | np.uint64((data[position >> 3] >> (7 - (position & 7))) & 1)
-            position += 1
-        gaps[i] = value
+def _read_fields(raw: np.ndarray, first: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """Gaps of bit lengths ``lengths`` whose ``k - 1`` low bits start at bit offsets ``first`` of ``raw``.
+
+    ``raw`` is the bit string's bytes followed by 9 zero bytes.
+    """
+    width = np.maximum(lengths - 1, 0).astype(np.uint64)
+    byte = first >> 3
+    # Big-endian 64-bit words starting at every byte (an unaligned view, no copy).
+    words = np.ndarray((raw.size - 8,), dtype=">u8", buffer=raw, strides=(1,))
+    offset = (first & 7).astype(np.uint64)
+    window = (words[byte].astype(np.uint64) << offset) | (raw[byte + 8].astype(np.uint64) >> (np.uint64(8) - offset))
+    # The m leading bits of the window; m = 0 reads nothing (a shift by 64 is undefined: masked).
+    bits = np.where(width > 0, window >> (np.uint64(64) - np.maximum(width, np.uint64(1))), np.uint64(0))
+    return np.where(lengths > 0, (np.uint64(1) << width) | bits, np.uint64(0))

@@ -25,7 +25,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from gscodec_shac.errors import ValidationError
@@ -187,16 +188,24 @@ class Quantizer:
         codes = np.arange(self.levels + 1, dtype=np.float64)
         return (self.lo.astype(np.float64)[:, None] + codes[None, :] * self.step[:, None]).astype(np.float32)
 
-    def dequantize_cells(self, planes: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    def dequantize_cells(self, planes: np.ndarray, cells: np.ndarray, workers: int = 1) -> np.ndarray:
         """(C, H*W) coded planes -> (N, C) float32 reconstructions of the ``cells`` (a column-major view).
 
-        The same values as ``dequantize(planes[:, cells].T)``, gathered and looked up in one
-        parallel pass over the channels.
+        The same values as ``dequantize(planes[:, cells].T)``: per channel one gather of the
+        occupied cells and one lookup in the channel's table of ``2^bits`` reconstructions,
+        both whole-array numpy operations that release the GIL, so ``workers`` threads
+        run channels side by side.
         """
         if planes.shape[0] != self.lo.shape[0]:
             raise ValidationError(f"quantiser has {self.lo.shape[0]} channels, the planes {planes.shape[0]}")
+        cells = np.asarray(cells, dtype=np.intp)
+        tables = self.tables()
         out = np.empty((planes.shape[0], cells.size), dtype=np.float32)
-        _gather_lookup(np.ascontiguousarray(planes), np.ascontiguousarray(cells, dtype=np.int64), self.tables(), out)
+
+        def channel(c: int) -> None:
+            np.take(tables[c], np.take(planes[c], cells), mode="clip", out=out[c])
+
+        map_channels(channel, planes.shape[0], workers)
         return out.T
 
     def dequantize(self, q: np.ndarray) -> np.ndarray:
@@ -259,11 +268,11 @@ def join_planes(high: np.ndarray, low: np.ndarray) -> np.ndarray:
     return (np.asarray(high, dtype=np.uint16) << 8) | np.asarray(low, dtype=np.uint16)
 
 
-@numba.njit(cache=True, parallel=True)
-def _gather_lookup(planes: np.ndarray, cells: np.ndarray, tables: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
-    """out[c, i] = tables[c, min(planes[c, cells[i]], last code)] (codes above the last one clip, as np.take does)."""
-    last = tables.shape[1] - 1
-    for c in numba.prange(planes.shape[0]):
-        for i in range(cells.size):
-            code = planes[c, cells[i]]
-            out[c, i] = tables[c, code if code <= last else last]
+def map_channels(work, count: int, workers: int) -> None:
+    """Run ``work(c)`` for ``c`` in ``range(count)``, in ``workers`` threads when more than one."""
+    if workers <= 1 or count <= 1:
+        for c in range(count):
+            work(c)
+        return
+    with ThreadPoolExecutor(min(workers, count)) as pool:
+        list(pool.map(work, range(count)))

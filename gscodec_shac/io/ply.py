@@ -142,41 +142,60 @@ def read_ply(path: str | os.PathLike, *, clamp_opacity: bool = False) -> Gaussia
         raise PlyFormatError(f"{path}: {exc}") from None
 
 
-def write_ply(path: str | os.PathLike, cloud: GaussianCloud, *, write_normals: bool = True) -> None:
+#: Rows per block when writing a PLY (bounds the structured-array temporary: 16 MB at SH degree 3).
+WRITE_BLOCK_ROWS = 1 << 16
+
+
+def write_ply(path: str | os.PathLike, cloud: GaussianCloud, *, write_normals: bool = True,
+              block_rows: int = WRITE_BLOCK_ROWS) -> None:
     """Write ``cloud`` as a binary little-endian Inria 3DGS PLY, atomically.
 
     ``nx ny nz`` come from ``cloud.extra`` when present; otherwise zero normals are
     written (as the Inria trainer does) unless ``write_normals`` is false. Other
-    extra properties follow the standard ones, in their stored order.
+    extra properties follow the standard ones, in their stored order. The rows are
+    interleaved and written ``block_rows`` at a time (the bytes do not depend on it),
+    so the write needs no second copy of the whole model.
     """
     path = Path(path)
-    table = cloud_to_structured(cloud, write_normals=write_normals)
-    element = plyfile.PlyElement.describe(table, "vertex")
+    n = cloud.num_gaussians
+    first = _structured_rows(cloud, slice(0, 0), write_normals)
+    element = plyfile.PlyElement.describe(first, "vertex")
+    header = plyfile.PlyData([element], text=False, byte_order="<").header
+    header = header.replace("\nelement vertex 0\n", f"\nelement vertex {n}\n", 1) + "\n"
     with atomic_output(path, error=PlyFormatError) as handle:
-        plyfile.PlyData([element], text=False, byte_order="<").write(handle)
+        handle.write(header.encode("ascii"))
+        for start in range(0, n, max(1, int(block_rows))):
+            handle.write(_structured_rows(cloud, slice(start, start + block_rows), write_normals).tobytes())
 
 
 def cloud_to_structured(cloud: GaussianCloud, *, write_normals: bool = True) -> np.ndarray:
     """The PLY vertex table of ``cloud`` as a numpy structured array (Inria order)."""
-    n = cloud.num_gaussians
-    f_rest = sh_index.inria_rest_from_sh_rest(cloud.sh_rest)
-    columns: list[tuple[str, np.ndarray]] = [("x", cloud.means[:, 0]), ("y", cloud.means[:, 1]), ("z", cloud.means[:, 2])]
+    return _structured_rows(cloud, slice(0, cloud.num_gaussians), write_normals)
+
+
+def _structured_rows(cloud: GaussianCloud, rows: slice, write_normals: bool) -> np.ndarray:
+    """Rows ``rows`` of the PLY vertex table of ``cloud`` as a structured array (Inria order)."""
+    n = len(range(cloud.num_gaussians)[rows])
+    rest = cloud.sh_rest[rows]
+    f_rest = np.ascontiguousarray(rest.transpose(0, 2, 1)).reshape(n, 3 * rest.shape[1])  # Inria channel-major
+    means, sh_dc, scales, quats = cloud.means[rows], cloud.sh_dc[rows], cloud.scales[rows], cloud.quats[rows]
+    columns: list[tuple[str, np.ndarray]] = [("x", means[:, 0]), ("y", means[:, 1]), ("z", means[:, 2])]
     if all(k in cloud.extra for k in _NORMALS):
-        columns += [(k, cloud.extra[k]) for k in _NORMALS]
+        columns += [(k, cloud.extra[k][rows]) for k in _NORMALS]
     elif write_normals:
         columns += [(k, np.zeros(n, dtype=np.float32)) for k in _NORMALS]
-    columns += [(f"f_dc_{i}", cloud.sh_dc[:, i]) for i in range(3)]
+    columns += [(f"f_dc_{i}", sh_dc[:, i]) for i in range(3)]
     columns += [(f"f_rest_{i}", f_rest[:, i]) for i in range(f_rest.shape[1])]
-    columns += [("opacity", cloud.opacities)]
-    columns += [(f"scale_{i}", cloud.scales[:, i]) for i in range(3)]
-    columns += [(f"rot_{i}", cloud.quats[:, i]) for i in range(4)]
+    columns += [("opacity", cloud.opacities[rows])]
+    columns += [(f"scale_{i}", scales[:, i]) for i in range(3)]
+    columns += [(f"rot_{i}", quats[:, i]) for i in range(4)]
     written = {name for name, _ in columns}
     for key, value in cloud.extra.items():
         if key in written:
             continue
         if value.ndim != 1:
             raise PlyFormatError(f"extra property {key!r} has shape {value.shape}; PLY scalars must be 1-D")
-        columns.append((key, value))
+        columns.append((key, value[rows]))
     dtype = [(name, _ply_dtype(values)) for name, values in columns]
     table = np.empty(n, dtype=dtype)
     for name, values in columns:

@@ -164,7 +164,7 @@ class HevcCodec(GridCodec):
 
         def decode_into_out(index: int) -> None:
             first, n_frames, chroma = plan[index]
-            frames = _decode_stream(streams[index], index)
+            frames = _decode_stream(streams[index], index, frame_threads if plan[index][1] > 1 else 1)
             if len(frames) != n_frames:
                 raise BitstreamError(f"hevc stream {index} holds {len(frames)} frames, expected {n_frames}")
             step = 3 if chroma else 1
@@ -175,6 +175,7 @@ class HevcCodec(GridCodec):
         # FFmpeg decodes without the GIL: the streams of a multi-channel grid go to
         # parallel threads (one 1024x1024 plane is ~30 ms; 38 of them in series were
         # the critical path of a 1M-Gaussian decode). Each thread writes its own planes.
+        frame_threads = os.cpu_count() or 1
         with ThreadPoolExecutor(min(len(streams), os.cpu_count() or 1)) as pool:
             list(pool.map(decode_into_out, range(len(streams))))
         planes = restore_samples(out[:, :height, :width], depths, shift, bit_depth)
@@ -271,10 +272,12 @@ def _planes_from_frame(frame: av.VideoFrame, index: int, height: int, width: int
     return np.stack([_plane_view(plane, itemsize) for plane in frame.planes]).astype(np.uint16)
 
 
-def _decode_stream(stream: bytes, index: int) -> list[av.VideoFrame]:
-    """All frames of one Annex-B stream, in output order."""
+def _decode_stream(stream: bytes, index: int, threads: int = 1) -> list[av.VideoFrame]:
+    """All frames of one Annex-B stream, in output order (``threads`` > 1: frame-threaded)."""
     try:
         ctx = av.CodecContext.create("hevc", "r")
+        if threads > 1:  # FFmpeg's frame threads: a multi-frame stream decodes on several cores (same pictures)
+            ctx.thread_type, ctx.thread_count = "FRAME", threads
         frames = []
         for packet in ctx.parse(stream) + ctx.parse(None):
             frames += ctx.decode(packet)

@@ -1,0 +1,145 @@
+"""Speed and memory of the codec at real-scene sizes, beside PlayCanvas splat-transform (issue 25).
+
+For each size N (synthetic SH-3 scenes, ``gscodec-shac synthetic -n N``) this runs, each
+in its own process, and records wall time, CPU time (user + system of the process and
+its children, from ``os.wait4``) and peak RSS:
+
+* ``encode``: ``gscodec-shac encode -r RATE_POINT --sh pca --er 0.97``;
+* ``decode``: the stream back to a PLY; ``decode_arrays``: the stream to arrays only
+  (the :class:`~gscodec_shac.codec.Decoder` in a fresh interpreter, no file written);
+* ``target_bpg``: ``encode --target-bpg B`` (the controller picks the SH settings; skipped
+  with ``--no-target``);
+* ``spz_write`` / ``spz_read``: ``splat-transform`` PLY -> SPZ and SPZ -> PLY of the same
+  file (skipped, with a line saying why, when node or the tool is absent);
+
+plus ``startup``: ``gscodec-shac decode`` of a 300-Gaussian fixture stream (start-up cost).
+``--baseline ../main`` runs every decode step under that checkout too, right before ours.
+Ratios (target / encode, decode / spz_read, encode / spz_write) are printed; all rows go
+to ``OUT/bench_speed.json`` and ``.csv`` with the load average at each step.
+
+    python scripts/bench_speed.py --sizes 250k,1M --out ../out/speed
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from gscodec_shac.rd.external import find_splat_transform, unavailable_reason  # noqa: E402
+
+TINY = ROOT / "tests" / "fixtures" / "streams" / "v2.0" / "ladder_rp6_pca.gsc"
+DECODE_ARRAYS = (
+    "import sys, time; t = time.perf_counter()\n"
+    "from gscodec_shac.codec import Bitstream, Decoder\n"
+    "cloud = Decoder().decode(Bitstream.read(sys.argv[1]))\n"
+    "print(f'{time.perf_counter() - t:.3f}')\n"
+)
+
+
+def parse_size(text: str) -> int:
+    """``250k`` / ``1M`` / ``4000000`` -> an integer."""
+    text = text.strip().lower()
+    scale = {"k": 1_000, "m": 1_000_000}.get(text[-1:], 1)
+    return int(float(text[:-1] if scale > 1 else text) * scale)
+
+
+def label(n: int) -> str:
+    return f"{n // 1_000_000}M" if n % 1_000_000 == 0 else f"{n // 1000}k"
+
+
+def measured(command: list[str], nice: int, root: Path = ROOT) -> dict:
+    """Run ``command`` with the checkout ``root`` first on the path: wall seconds, CPU seconds and
+    peak RSS (GB) of that child alone (``os.wait4``)."""
+    env = {**os.environ, "PYTHONPATH": str(root) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    load = os.getloadavg()[0]
+    tic = time.perf_counter()
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
+                               preexec_fn=(lambda: os.nice(nice)) if nice else None)
+    output = process.stdout.read()  # type: ignore[union-attr]
+    _, status, usage = os.wait4(process.pid, 0)
+    wall = time.perf_counter() - tic
+    process.returncode = os.waitstatus_to_exitcode(status)
+    if process.returncode != 0:
+        raise SystemExit(f"error: {shlex.join(command)} failed ({process.returncode}): {output.decode()[-400:]}")
+    return {"wall_s": round(wall, 3), "cpu_s": round(usage.ru_utime + usage.ru_stime, 3),
+            "peak_rss_gb": round(usage.ru_maxrss / 1024**2, 3), "load": round(load, 2),
+            "output": output.decode().strip().splitlines()[-1][-200:] if output.strip() else ""}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sizes", default="250k,1M,4M", help="comma-separated Gaussian counts (250k,1M,4M)")
+    parser.add_argument("--out", type=Path, default=ROOT.parent / "out" / "bench_speed", help="work and result folder")
+    parser.add_argument("--rate-point", default="shac_ladder:rp4")
+    parser.add_argument("--target-bpg", type=float, default=100.0)
+    parser.add_argument("--no-target", action="store_true", help="skip the --target-bpg encodes")
+    parser.add_argument("--no-peer", action="store_true", help="skip splat-transform")
+    parser.add_argument("--nice", type=int, default=5, help="niceness of the measured processes")
+    parser.add_argument("--baseline", type=Path, help="another checkout: its decodes run right before ours (paired)")
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    cli = [sys.executable, "-m", "gscodec_shac"]
+    peer = None if args.no_peer else find_splat_transform()
+    if peer is None:
+        print(f"splat-transform: skipped ({'--no-peer' if args.no_peer else unavailable_reason()})")
+    rows: list[dict] = []
+
+    def record(size: str, step: str, result: dict) -> dict:
+        row = {"size": size, "step": step, **result}
+        rows.append(row)
+        print(f"{size:>5} {step:<23} wall {row['wall_s']:8.2f} s  cpu {row.get('cpu_s', float('nan')):8.2f} s  "
+              f"peak {row.get('peak_rss_gb', float('nan')):6.2f} GB  load {row['load']:.1f}", flush=True)
+        return row
+
+    def decode_step(size: str, step: str, command: list[str]) -> dict:
+        if args.baseline is not None:
+            record(size, step + "@baseline", measured(command, args.nice, args.baseline.resolve()))
+        return record(size, step, measured(command, args.nice))
+
+    decode_step("300", "startup", [*cli, "decode", str(TINY), str(args.out / "tiny.ply"), "--force"])
+    for n in (parse_size(s) for s in args.sizes.split(",")):
+        size = label(n)
+        ply, gsc, dec = (args.out / size / f"s{size}{ext}" for ext in (".ply", ".gsc", "_dec.ply"))
+        if not ply.exists():  # one folder per size: synthetic writes cameras.json beside the PLY
+            ply.parent.mkdir(exist_ok=True)
+            measured([*cli, "synthetic", str(ply), "-n", str(n), "--views", "4", "-q", "--force"], args.nice)
+        point = ["-r", args.rate_point, "--sh", "pca", "--er", "0.97", "--force"]
+        enc = record(size, "encode", measured([*cli, "encode", str(ply), str(gsc), *point], args.nice))
+        decode_step(size, "decode_arrays", [sys.executable, "-c", DECODE_ARRAYS, str(gsc)])
+        decode = decode_step(size, "decode", [*cli, "decode", str(gsc), str(dec), "--force"])
+        if not args.no_target:
+            target = record(size, "target_bpg", measured(
+                [*cli, "encode", str(ply), str(args.out / size / f"s{size}_target.gsc"), "--target-bpg",
+                 str(args.target_bpg), "--force"], args.nice))
+            print(f"{size:>5} ratio target / encode: {target['wall_s'] / enc['wall_s']:.2f} (wall), "
+                  f"{target['cpu_s'] / enc['cpu_s']:.2f} (cpu)")
+        if peer is not None:
+            spz = args.out / size / f"s{size}.spz"
+            write = record(size, "spz_write", measured([str(peer), "-w", "-q", str(ply), str(spz)], args.nice))
+            back = args.out / size / f"s{size}_spz.ply"
+            read = record(size, "spz_read", measured([str(peer), "-w", "-q", str(spz), str(back)], args.nice))
+            print(f"{size:>5} ratio decode / spz_read: {decode['wall_s'] / read['wall_s']:.2f} (wall), "
+                  f"{decode['cpu_s'] / read['cpu_s']:.2f} (cpu); encode / spz_write: "
+                  f"{enc['wall_s'] / write['wall_s']:.2f} (wall)")
+    (args.out / "bench_speed.json").write_text(json.dumps(rows, indent=1) + "\n")
+    with open(args.out / "bench_speed.csv", "w", newline="") as handle:
+        fields = ["size", "step", "wall_s", "cpu_s", "peak_rss_gb", "load", "output"]
+        writer = csv.DictWriter(handle, fieldnames=fields, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+    print(f"wrote {args.out / 'bench_speed.json'} and .csv")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
