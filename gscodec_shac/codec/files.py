@@ -66,6 +66,7 @@ def encode_file(
         "rate_point": encoder.rate_point.name,
         "sh_stage": encoder.rate_point.sh_stage,
         "input_gaussians": cloud.num_gaussians,
+        "sh_degree": cloud.sh_degree,
         "num_gaussians": stream.header["num_gaussians"],
         "bytes": size,
         "bits_per_gaussian": 8.0 * size / cloud.num_gaussians,

@@ -84,12 +84,12 @@ def format_gsc_summary(summary: dict[str, Any]) -> str:
         f"{summary['producer']})",
         f"Gaussians         {summary['num_gaussians']:,} (input {summary['input_gaussians']:,}; "
         f"pruned {summary['pruned']:,}, dropped {summary['dropped']:,})",
-        f"SH                degree {summary['sh_degree']}, stage {summary['sh_stage']}"
+        f"SH                degree {summary['sh_degree']}, stage {summary['sh_stage'] or 'none'}"
         + (f" ({summary['sh_features']} features)" if summary["sh_features"] else ""),
         f"grid              {summary['grid']}, sort {summary['sort']}, padding {summary['padding']}, colour {summary['color']}",
         f"rate point        {summary['rate_point']}" + _target(summary.get("target")),
-        f"bits per Gaussian {summary['bits_per_gaussian']:.3f}",
-        "attribute                 bytes   share  bits/Gaussian",
+        f"bits/Gaussian     {summary['bits_per_gaussian']:.3f} bits per {_per(summary)} Gaussian",
+        f"attribute                 bytes   share  bits/{summary.get('bits_per_gaussian_of', 'input')} G",
     ]
     for name, info in summary["attributes"].items():
         share = 100.0 * info["bytes"] / summary["bytes"]
@@ -102,6 +102,13 @@ def format_gsc_summary(summary: dict[str, Any]) -> str:
         bits = "-" if chunk["bits"] is None else str(chunk["bits"])
         lines.append(f"  {chunk['name']:<16} {chunk['bytes']:>12,} {bits:>5} {qp:>3}   {chunk['codec'] or '-'}")
     return "\n".join(lines)
+
+
+def _per(summary: dict[str, Any]) -> str:
+    """``input``, or for a stream without the input count ``decoded (no input count in this older stream)``."""
+    if summary.get("bits_per_gaussian_of", "input") == "input":
+        return "input"
+    return "decoded (no input count in this older stream)"
 
 
 def _target(target: dict | None) -> str:
