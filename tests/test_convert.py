@@ -133,3 +133,12 @@ def test_ply_with_infinite_opacity_is_clamped_with_a_note(tmp_path, capsys):
     data.write(str(source))
     assert main(["convert", str(source), str(tmp_path / "out.spz")]) == 0
     assert "3 infinite opacity logit(s)" in capsys.readouterr().err
+
+
+def test_spz_version_4_written_and_read(tmp_path, sources):
+    _, paths = sources
+    out = tmp_path / "v4.spz"
+    assert main(["convert", str(paths[".ply"]), str(out), "--spz-version", "4"]) == 0
+    assert out.read_bytes()[:4] == b"NGSP"  # version 4: zstd streams behind a plain header, not gzip
+    back, _ = read_model(out)
+    assert back.num_gaussians == 300 and back.sh_degree == 1

@@ -67,6 +67,7 @@ def _their_reading(tool: Path, source: Path, tmp_path: Path) -> GaussianCloud:
 @pytest.mark.parametrize("name, options, tolerance", [
     ("v2.spz", {"version": 2}, {"quats": 1e-5}),
     ("v3.spz", {"version": 3}, {"quats": 1e-5}),
+    ("v4.spz", {"version": 4}, {"quats": 1e-5}),
     ("scene.sog", {"iterations": 3}, {}),
     # .splat rotations: antimatter15 decodes (b - 128) / 128, splat-transform b / 255 * 2 - 1
     ("scene.splat", {}, {"quats": 1.0 / 128}),

@@ -22,6 +22,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("input", metavar="IN", help="input model (any readable format, or a .gsc)")
     parser.add_argument("output", metavar="OUT", help="output model: .ply, .compressed.ply, .spz, .splat, .sog or "
                         ".pt (a .gsc is written by 'encode')")
+    parser.add_argument("--spz-version", type=int, choices=(2, 3, 4), default=3,
+                        help="SPZ version of an .spz output (default 3, gzip; 4 is zstd, splat-transform's default)")
     add_quiet(parser)
     add_force(parser)
     parser.set_defaults(func=run)
@@ -44,7 +46,8 @@ def run(args: argparse.Namespace) -> int:
     source = detect_format(args.input)
     cloud, notes = read_model(args.input)
     with inputs_protected(args.input):
-        notes += write_model(args.output, cloud, progress=show_progress(args))
+        options = {"version": args.spz_version} if write_format(args.output) == "spz" else {}
+        notes += write_model(args.output, cloud, progress=show_progress(args), **options)
     report_notes(notes)
     print(f"wrote {args.output}: {cloud.num_gaussians:,} Gaussians, SH degree {cloud.sh_degree} "
           f"({source} -> {write_format(args.output)}, {Path(args.output).stat().st_size:,} bytes)")
