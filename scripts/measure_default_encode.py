@@ -78,15 +78,16 @@ def main(argv: list[str] | None = None) -> int:
             out = args.out / f"{name}.{parts[0].replace(':', '_')}{'_' + '_'.join(parts[1:]) if parts[1:] else ''}.gsc"
             tic = time.process_time()
             if candidate == "default":
-                from gscodec_shac.codec.defaults import DEFAULT_RATE_POINT, DEFAULT_STAGE_PARAMS, DEFAULT_SH_STAGE
+                from gscodec_shac.codec.defaults import DEFAULT_RATE_POINT, choose_default_sh
 
-                summary = encode_file(model, out, DEFAULT_RATE_POINT, sh=DEFAULT_SH_STAGE, **DEFAULT_STAGE_PARAMS)
+                summary = encode_file(model, out, DEFAULT_RATE_POINT, choose_sh=choose_default_sh)
             else:
                 params = {"energy_retention": float(parts[2])} if len(parts) > 2 else {}
                 summary = encode_file(model, out, parts[0], sh=parts[1] if len(parts) > 1 else None, **params)
             cpu = time.process_time() - tic
             decoded = Decoder().decode(Bitstream.read(out).to_bytes())
-            results.append({"file": f"gsc {candidate}", "path": str(out), "bytes": summary["bytes"],
+            results.append({"file": f"gsc {candidate}", "sh_stage": summary["sh_stage"], "path": str(out),
+                            "bytes": summary["bytes"],
                             "decoded_gaussians": decoded.num_gaussians, "encode_cpu_s": cpu,
                             "psnr": _psnr_views(reference, render_views(decoded, views, progress=False))})
         for r in results:

@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     import json
 
     from gscodec_shac.codec import encode_file
-    from gscodec_shac.codec.defaults import DEFAULT_RATE_POINT, DEFAULT_SH_STAGE, DEFAULT_STAGE_PARAMS
+    from gscodec_shac.codec.defaults import DEFAULT_RATE_POINT, DEFAULT_SH_STAGE, choose_default_sh
     from gscodec_shac.codec.rate_points import load_rate_point
     from gscodec_shac.errors import GscodecError
     from gscodec_shac.io.models import report_notes
@@ -101,8 +101,9 @@ def run(args: argparse.Namespace) -> int:
         raise GscodecError("--cameras applies to --target-psnr (the views the quality is judged from)")
     default = args.rate_point is None
     point = load_rate_point(args.rate_point or DEFAULT_RATE_POINT)
+    automatic = default and args.sh is None  # the SH stage is chosen from the model (codec/defaults.py)
     stage = args.sh or (DEFAULT_SH_STAGE if default else point.sh_stage)
-    params = dict(DEFAULT_STAGE_PARAMS) if default and stage == DEFAULT_SH_STAGE else {}
+    params = {}
     for flag, users in stage_options().items():
         value = getattr(args, flag)
         if value is None:
@@ -114,9 +115,12 @@ def run(args: argparse.Namespace) -> int:
         params[param.name] = value
     if args.seed is not None and any(p.name == "seed" for p in STAGES.get(stage).params):
         params["seed"] = args.seed  # --seed seeds the stage (e.g. vq's k-means) as well as the sorting
+    if params:  # stage options without --sh: they set the default's PCA
+        automatic = False
     summary = encode_file(
         args.input, args.output, point, sh=stage, sort=args.sort, seed=args.seed, preset=args.preset,
-        progress=not args.quiet and sys.stderr.isatty(), **params,
+        progress=not args.quiet and sys.stderr.isatty(), choose_sh=choose_default_sh if automatic else None,
+        **params,
     )
     notes = list(summary["notes"])
     if summary.get("sh_degree") == 0 and args.sh not in (None, "none"):
@@ -127,18 +131,18 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
-        chosen = (describe_default() if default and not args.sh else
+        chosen = (describe_default(summary["sh_stage"]) if automatic else
                   f"{summary['rate_point']}, SH stage {summary['sh_stage'] or 'none'}")
         print(f"wrote {summary['output']}: {summary['bytes']:,} bytes, {size_phrase(summary)} "
               f"({'default: ' if default else ''}{chosen}) in {summary['seconds']:.1f} s")
     return 0
 
 
-def describe_default() -> str:
+def describe_default(stage: str | None) -> str:
     """The default encode in words (from :mod:`gscodec_shac.codec.defaults`)."""
     from gscodec_shac.codec.defaults import describe_default as describe
 
-    return describe()
+    return describe(stage)
 
 
 def size_phrase(summary: dict) -> str:
