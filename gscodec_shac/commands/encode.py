@@ -163,11 +163,11 @@ def check_paths(args: argparse.Namespace) -> None:
 
     if not Path(args.input).exists():
         raise GscodecError(f"{args.input}: no such input file or folder")
+    check_output(args.output, force=args.force,
+                 inputs=[args.input, (args.rate_point or "").rsplit(":", 1)[0], args.cameras])
     if Path(args.output).suffix.lower() != ".gsc":
         raise OutputError(f"{args.output}: encode writes a .gsc file; name the output OUT.gsc (to write another "
                           "model format use 'gscodec-shac convert IN OUT')")
-    check_output(args.output, force=args.force,
-                 inputs=[args.input, (args.rate_point or "").rsplit(":", 1)[0], args.cameras])
 
 
 def _run_to_target(args: argparse.Namespace) -> int:
