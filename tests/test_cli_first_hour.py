@@ -1,5 +1,5 @@
-"""``gscodec-shac convert`` between every pair of formats we read and write, the compressed.ply
-writer, and the naming checks of ``encode``/``decode`` (issue 26)."""
+"""The first hour of a new user (issue 26): ``convert`` between every pair of formats, the
+compressed.ply writer, .gsc read by every command, name checks, bits per input Gaussian, notes."""
 
 from __future__ import annotations
 
@@ -142,3 +142,40 @@ def test_spz_version_4_written_and_read(tmp_path, sources):
     assert out.read_bytes()[:4] == b"NGSP"  # version 4: zstd streams behind a plain header, not gzip
     back, _ = read_model(out)
     assert back.num_gaussians == 300 and back.sh_degree == 1
+
+
+def test_info_bits_per_input_gaussian_and_older_streams_labelled(tmp_path, sources, capsys):
+    """info divides by the input count the header records (as encode does); a stream without it
+    (older writers) falls back to the decoded count and says so."""
+    import json
+
+    from gscodec_shac.codec.container import Bitstream
+
+    _, paths = sources
+    assert main(["info", str(paths[".gsc"]), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["bits_per_gaussian_of"] == "input"
+    assert summary["bits_per_gaussian"] == pytest.approx(8.0 * paths[".gsc"].stat().st_size / 300)
+    stream = Bitstream.read(paths[".gsc"])
+    del stream.header["input_gaussians"]
+    old = tmp_path / "old.gsc"
+    stream.write(old)
+    assert main(["info", str(old)]) == 0
+    assert "bits per decoded (no input count in this older stream) Gaussian" in capsys.readouterr().out
+
+
+def test_sh_stage_on_sh0_model_is_a_noted_no_op(tmp_path, capsys):
+    source = tmp_path / "in.ply"
+    write_model(source, _cloud(n=60).replace(sh_rest=np.zeros((60, 0, 3), np.float32)))
+    assert main(["encode", str(source), str(tmp_path / "o.gsc"), "--sh", "pca", "-q"]) == 0
+    assert "has nothing to do (a no-op)" in capsys.readouterr().err
+    assert main(["info", str(tmp_path / "o.gsc")]) == 0
+    assert "stage None" not in capsys.readouterr().out
+
+
+def test_target_size_above_the_largest_file_says_so(tmp_path, sources, capsys):
+    _, paths = sources
+    out = tmp_path / "t.gsc"
+    assert main(["encode", str(paths[".ply"]), str(out), "--target-size", "1GB", "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "--target-size 1GB is above the largest file" in err and f"{out.stat().st_size:,} bytes" in err
