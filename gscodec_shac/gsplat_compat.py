@@ -161,7 +161,9 @@ class ShacCompression:
     as gsplat's ``use_sort=False``); ``verbose``: progress bars (as gsplat: on by
     default). Ours, by keyword: ``rate_point`` (default ``"gsplat_png"``: 8-bit PNG +
     k-means SH, as gsplat), ``sh``/``sh_params`` (SH stage override), ``filename`` and
-    ``extra_filename`` (the side file of the other splat keys).
+    ``extra_filename`` (the side file of the other splat keys). ``decompress`` warns
+    (:class:`FewerGaussiansWarning`) when the rate point pruned Gaussians, so it returns fewer
+    than ``compress`` was given; sizes are bits per input Gaussian, as everywhere.
     """
 
     use_sort: bool = True

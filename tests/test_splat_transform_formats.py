@@ -137,7 +137,7 @@ def test_encode_info_decode_real_scenes_without_node(tmp_path):
     assert "500,000" in cli("info", playbot) and "SH degree         2" in cli("info", playbot)
     for source, n in ((plant, 113_648), (playbot, 500_000)):
         gsc = tmp_path / f"{source.stem or source.name}.gsc"
-        cli("encode", source, gsc, "-q", "--sort", "morton", "--preset", "ultrafast")
+        cli("encode", source, gsc, "-q", "-r", "paper_table3:rp2", "--sort", "morton", "--preset", "ultrafast")
         for suffix in (".spz", ".splat", ".ply"):
             out = gsc.with_suffix(suffix)
             cli("decode", gsc, out, "-q")
