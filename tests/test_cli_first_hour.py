@@ -99,7 +99,7 @@ def test_missing_input_reported_before_existing_output(tmp_path, capsys):
     out = tmp_path / "out.gsc"
     out.write_bytes(b"x")
     assert main(["encode", str(tmp_path / "missing.ply"), str(out)]) == 2
-    assert "no such input" in capsys.readouterr().err
+    assert "no such file" in capsys.readouterr().err
 
 
 def test_decode_to_compressed_ply_writes_the_chunked_format(tmp_path, sources):

@@ -249,7 +249,8 @@ def test_cli_encode_decode_info(tmp_path, small_cloud, capsys):
     [
         (["encode", "{ply}", "{gsc}", "-r", "paper_table3:rp7"], "no rate point 'rp7'", 2),
         (["encode", "{ply}", "{gsc}", "--sh", "none", "--er", "0.9"], "--er applies to --sh pca", 2),
-        (["encode", "{ply}", "{gsc}", "--sh", "pca", "--components", "99", "--sort", "none"], "n_components=99", 2),
+        (["encode", "{ply}", "{gsc}", "-r", "paper_table3:rp2", "--sh", "pca", "--components", "99", "--sort", "none"],
+         "n_components=99", 2),
         (["encode", "{missing}", "{gsc}"], "no such file", 2),
         (["decode", "{ply}", "{gsc}"], "not a .gsc file", 3),
         (["encode", "{ply}", "{nodir}"], "does not exist", 2),

@@ -38,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     from gscodec_shac.io.models import write_model
 
     if not Path(args.input).exists():
-        raise GscodecError(f"{args.input}: no such input file or folder")
+        raise GscodecError(f"{args.input}: no such file or folder")
     if Path(args.output).suffix.lower() == ".gsc":
         raise OutputError(f"{args.output}: a .gsc is written by 'gscodec-shac encode IN OUT.gsc', not by convert")
     check_model_extension(args.output)

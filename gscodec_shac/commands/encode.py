@@ -162,7 +162,7 @@ def check_paths(args: argparse.Namespace) -> None:
     from gscodec_shac.errors import GscodecError, OutputError
 
     if not Path(args.input).exists():
-        raise GscodecError(f"{args.input}: no such input file or folder")
+        raise GscodecError(f"{args.input}: no such file or folder")
     check_output(args.output, force=args.force,
                  inputs=[args.input, (args.rate_point or "").rsplit(":", 1)[0], args.cameras])
     if Path(args.output).suffix.lower() != ".gsc":
