@@ -161,7 +161,9 @@ class ShacCompression:
     as gsplat's ``use_sort=False``); ``verbose``: progress bars (as gsplat: on by
     default). Ours, by keyword: ``rate_point`` (default ``"gsplat_png"``: 8-bit PNG +
     k-means SH, as gsplat), ``sh``/``sh_params`` (SH stage override), ``filename`` and
-    ``extra_filename`` (the side file of the other splat keys).
+    ``extra_filename`` (the side file of the other splat keys). ``decompress`` warns
+    (:class:`FewerGaussiansWarning`) when the rate point pruned Gaussians, so it returns fewer
+    than ``compress`` was given; sizes are bits per input Gaussian, as everywhere.
     """
 
     use_sort: bool = True
@@ -200,6 +202,7 @@ class ShacCompression:
         directory = Path(compress_dir)
         stream = Bitstream.read(directory / self.filename)
         splats = cloud_to_splats(Decoder(progress=self.verbose).decode(stream))
+        _warn_if_fewer(stream, splats["means"].shape[0], directory / self.filename)
         extra_path = directory / self.extra_filename
         if extra_path.is_file():
             import torch
@@ -216,3 +219,21 @@ class ShacCompression:
                                        f"the decoded splats {n}: the side file belongs to another compression")
                 splats[key] = torch.from_numpy(np.ascontiguousarray(value))
         return splats
+
+
+class FewerGaussiansWarning(UserWarning):
+    """The decoded splats hold fewer Gaussians than were compressed (the rate point prunes)."""
+
+
+def _warn_if_fewer(stream: Bitstream, decoded: int, path: Path) -> None:
+    """Warn when pruning left fewer Gaussians than ``compress`` was given (header ``input_gaussians``)."""
+    import warnings
+
+    from gscodec_shac.codec.header import read_header
+
+    given = read_header(stream).input_gaussians
+    if given is not None and decoded < given:
+        warnings.warn(FewerGaussiansWarning(
+            f"{path}: returns {decoded:,} Gaussians of the {given:,} compressed ({given - decoded:,} pruned by the "
+            f"rate point; {8.0 * stream.total_bytes() / given:.2f} bits per input Gaussian)"), stacklevel=3)
+

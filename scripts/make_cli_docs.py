@@ -50,6 +50,25 @@ conventions hold for all of them:
   memory budget; `--debug` (before or after the command) shows the traceback.
 * **Examples:** every command's description ends with one; `gscodec-shac rate-points` lists the
   shipped rate points (`--rate-point SET:POINT`).
+* **The default encode** (`encode IN OUT.gsc`, no options) is SHAC on `shac_ladder:rp5`: SHAC-PCA
+  at ER 0.99, or vq-pca when the input's SH is already a palette (a SOG); smaller than the input
+  and than SPZ at a higher PSNR on the four shared scenes (docs/formats.md, "The default
+  encode"). The paper's points are one flag away: `-r paper_table3:rp2`.
+* **Bits per Gaussian** mean one thing everywhere (`encode`, `info`, `rd`, reports, the gsplat
+  drop-in): file bits divided by the Gaussians given to the encoder, printed as "bits per input
+  Gaussian" with the count pruned. A `.gsc` written before the header held the input count
+  shows bits per *decoded* Gaussian, labelled so.
+* **Model files in, model files out.** Every command that reads a model also reads a `.gsc`
+  (decoded): `render`, `analyze`, `info`, `encode` (re-encode), `info --compare A B` (PSNR of B
+  against A). `convert IN OUT` converts between the formats (docs/formats.md). `encode` writes
+  only a `.gsc` name; `decode x.gsc y.compressed.ply` writes PlayCanvas's chunked format. A PLY
+  with infinite opacity logits is read clamped, with a note. A missing input is reported before
+  an existing output.
+* **Small answers.** `rd-report` rewrites the report it wrote before without `--force`;
+  rate-point errors name the set as given (`shac_ladder: no rate point 'rp44'`);
+  `--target-size`/`--target-bpg` above the largest file the controller makes prints a note and
+  writes that file; an SH stage asked for on an SH-0 model prints that it is a no-op; the
+  ladder spans about 30-310 bits per Gaussian on bonsai (docs/rate_control.md).
 
 ## Old spellings
 

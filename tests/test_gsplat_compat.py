@@ -97,3 +97,22 @@ def test_sh_stages_on_dicts_and_arrays(splats):
     assert isinstance(plain, np.ndarray) and np.allclose(plain, rebuilt.numpy())
     error = float(((plain - array) ** 2).mean())
     assert error < 0.5 * float(array.var())
+
+
+def test_decompress_warns_when_pruning_returns_fewer_gaussians(tmp_path, splats):
+    from gscodec_shac.gsplat_compat import FewerGaussiansWarning
+
+    splats = {k: v.clone() for k, v in splats.items()}
+    splats["opacities"][:100] = -8.0  # alpha 0.0003: below shac_ladder:rp1's pruning threshold (0.02)
+    codec = ShacCompression(rate_point="shac_ladder:rp1", verbose=False)
+    codec.compress(tmp_path, splats)
+    with pytest.warns(FewerGaussiansWarning, match=r"of the 2,000 compressed .* bits per input Gaussian"):
+        back = codec.decompress(tmp_path)
+    assert back["means"].shape[0] <= 1900
+    codec = ShacCompression(rate_point="paper_table3:rp4", verbose=False)  # no pruning: no warning
+    codec.compress(tmp_path / "b", splats)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", FewerGaussiansWarning)
+        assert codec.decompress(tmp_path / "b")["means"].shape[0] == 2000

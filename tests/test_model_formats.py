@@ -181,9 +181,20 @@ def test_spz_errors_name_the_problem(tmp_path):
         path.write_bytes(raw)
         with pytest.raises(ModelFormatError, match=message):
             read_spz(path)
-    with pytest.raises(ModelFormatError, match="version 4 cannot be written"):
-        write_spz(tmp_path / "v4.spz", _cloud(5), version=4)
-    assert not (tmp_path / "v4.spz").exists()
+    with pytest.raises(ModelFormatError, match="version 5 cannot be written"):
+        write_spz(tmp_path / "v5.spz", _cloud(5), version=5)
+    assert not (tmp_path / "v5.spz").exists()
+
+
+def test_spz_version_4_round_trip_equals_version_3(tmp_path):
+    """Version 4 holds the same streams as version 3, zstd-compressed behind a plain header."""
+    cloud = _cloud(200, degree=2)
+    write_spz(tmp_path / "v3.spz", cloud, version=3)
+    write_spz(tmp_path / "v4.spz", cloud, version=4)
+    assert (tmp_path / "v4.spz").read_bytes()[:8] == struct.pack("<II", 0x5053474E, 4)
+    v3, v4 = read_spz(tmp_path / "v3.spz"), read_spz(tmp_path / "v4.spz")
+    for name in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest"):
+        assert np.array_equal(getattr(v3, name), getattr(v4, name)), name
 
 
 def test_spz_version_4_names_what_it_needs(tmp_path):

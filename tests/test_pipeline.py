@@ -227,16 +227,21 @@ def test_cli_encode_decode_info(tmp_path, small_cloud, capsys):
     assert main(["encode", str(ply), str(gsc), "--rate-point", "paper_table3:rp2", "--sh", "pca", "--er", "0.99",
                  "--sort", "morton", "--preset", "ultrafast", "--seed", "1"]) == 0
     line = capsys.readouterr().out.strip()
-    assert "\n" not in line and "bits/Gaussian" in line and "pca" in line
+    assert "\n" not in line and "bits per input Gaussian" in line and "pca" in line and "2,000 in" in line
     assert Bitstream.read(gsc).header["rate_point"]["attributes"]["scale"]["options"]["preset"] == "ultrafast"
     assert main(["decode", str(gsc), str(out)]) == 0
     assert "2,000 Gaussians" in capsys.readouterr().out
     assert main(["info", str(gsc)]) == 0
     text = capsys.readouterr().out
-    assert "bits per Gaussian" in text and "sh_state" in text and "paper_table3:rp2" in text
+    assert "bits per input Gaussian" in text and "sh_state" in text and "paper_table3:rp2" in text
     assert main(["encode", str(ply), str(gsc), "-r", "gsplat_png", "--sort", "none", "--clusters", "128", "--json",
                  "--force"]) == 0
     assert '"sh_stage": "vq"' in capsys.readouterr().out
+    # the default: SHAC-PCA on shac_ladder:rp5, said so in the summary line
+    assert main(["encode", str(ply), str(gsc), "--force"]) == 0
+    line = capsys.readouterr().out
+    assert "default: shac_ladder:rp5 + SHAC-PCA" in line and "bits per input Gaussian" in line
+    assert Bitstream.read(gsc).header["rate_point"]["name"] == "shac_ladder:rp5"
 
 
 @pytest.mark.parametrize(
@@ -244,7 +249,8 @@ def test_cli_encode_decode_info(tmp_path, small_cloud, capsys):
     [
         (["encode", "{ply}", "{gsc}", "-r", "paper_table3:rp7"], "no rate point 'rp7'", 2),
         (["encode", "{ply}", "{gsc}", "--sh", "none", "--er", "0.9"], "--er applies to --sh pca", 2),
-        (["encode", "{ply}", "{gsc}", "--sh", "pca", "--components", "99", "--sort", "none"], "n_components=99", 2),
+        (["encode", "{ply}", "{gsc}", "-r", "paper_table3:rp2", "--sh", "pca", "--components", "99", "--sort", "none"],
+         "n_components=99", 2),
         (["encode", "{missing}", "{gsc}"], "no such file", 2),
         (["decode", "{ply}", "{gsc}"], "not a .gsc file", 3),
         (["encode", "{ply}", "{nodir}"], "does not exist", 2),

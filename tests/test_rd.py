@@ -171,6 +171,11 @@ def test_cli_rd_report_and_dry_run(tiny_run, tmp_path, capsys):
     spec, out, outcome = tiny_run
     assert main(["rd-report", str(out), "--out", str(tmp_path / "r"), "--x-axis", "bpg"]) == 0
     assert (tmp_path / "r" / "report.md").is_file()
+    # its own report is regenerated without --force (issue 26); a foreign report.md still needs it
+    assert main(["rd-report", str(out), "--out", str(tmp_path / "r")]) == 0
+    (tmp_path / "r2").mkdir()
+    (tmp_path / "r2" / "report.md").write_text("mine")
+    assert main(["rd-report", str(out), "--out", str(tmp_path / "r2")]) == 2
     sweep = tmp_path / "s.yaml"
     sweep.write_text(json.dumps(tiny_spec(tmp_path)))  # JSON is YAML
     assert main(["rd", str(sweep), "--out", str(tmp_path / "o"), "--dry-run"]) == 0

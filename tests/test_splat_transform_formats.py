@@ -67,9 +67,11 @@ def _their_reading(tool: Path, source: Path, tmp_path: Path) -> GaussianCloud:
 @pytest.mark.parametrize("name, options, tolerance", [
     ("v2.spz", {"version": 2}, {"quats": 1e-5}),
     ("v3.spz", {"version": 3}, {"quats": 1e-5}),
+    ("v4.spz", {"version": 4}, {"quats": 1e-5}),
     ("scene.sog", {"iterations": 3}, {}),
     # .splat rotations: antimatter15 decodes (b - 128) / 128, splat-transform b / 255 * 2 - 1
     ("scene.splat", {}, {"quats": 1.0 / 128}),
+    ("scene.compressed.ply", {}, {}),  # our writer: splat-transform decodes its chunk layout as we do
 ])
 def test_splat_transform_reads_our_files(tmp_path, splat_transform, name, options, tolerance):  # noqa: F811
     path = tmp_path / name
@@ -135,7 +137,7 @@ def test_encode_info_decode_real_scenes_without_node(tmp_path):
     assert "500,000" in cli("info", playbot) and "SH degree         2" in cli("info", playbot)
     for source, n in ((plant, 113_648), (playbot, 500_000)):
         gsc = tmp_path / f"{source.stem or source.name}.gsc"
-        cli("encode", source, gsc, "-q", "--sort", "morton", "--preset", "ultrafast")
+        cli("encode", source, gsc, "-q", "-r", "paper_table3:rp2", "--sort", "morton", "--preset", "ultrafast")
         for suffix in (".spz", ".splat", ".ply"):
             out = gsc.with_suffix(suffix)
             cli("decode", gsc, out, "-q")

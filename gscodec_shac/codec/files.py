@@ -8,7 +8,7 @@ from __future__ import annotations
 import os
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from gscodec_shac.atomic import inputs_protected
 from gscodec_shac.codec.container import Bitstream
@@ -29,6 +29,7 @@ def encode_file(
     seed: int | None = None,
     preset: str | None = None,
     progress: bool = False,
+    choose_sh: Callable[[Any], tuple[str, dict[str, Any]]] | None = None,
     **stage_params: Any,
 ) -> dict[str, Any]:
     """Any model file ``read_model`` reads -> ``.gsc`` (written atomically); returns a summary
@@ -36,16 +37,14 @@ def encode_file(
 
     ``sh`` picks the SH stage (default: the rate point's), ``stage_params`` its
     parameters (e.g. ``energy_retention=0.99``); ``preset`` sets the lossy
-    codecs' speed preset (x265's ``preset`` option).
+    codecs' speed preset (x265's ``preset`` option). ``choose_sh``, when given, picks
+    ``(stage, params)`` from the model read (the default encode, :mod:`.defaults`).
     """
     from gscodec_shac.deform_arch import is_dynamic_model
     from gscodec_shac.io.models import read_model
 
     tic = time.perf_counter()
     _check_output_dir(out_gsc, in_ply)
-    encoder = Encoder(rate_point, sh_stage=sh, sort=sort, seed=seed,
-                      sh_params={k: v for k, v in stage_params.items() if v is not None},
-                      codec_options={"preset": preset} if preset else None, progress=progress)
     dynamic = None
     if is_dynamic_model(in_ply):  # canonical Gaussians as any model + the network chunk
         from gscodec_shac.codec.deformation import add_deformation
@@ -55,6 +54,12 @@ def encode_file(
         cloud, notes = dynamic.cloud, []
     else:
         cloud, notes = read_model(in_ply)
+    if choose_sh is not None:
+        sh, chosen = choose_sh(cloud)
+        stage_params = {**chosen, **stage_params}
+    encoder = Encoder(rate_point, sh_stage=sh, sort=sort, seed=seed,
+                      sh_params={k: v for k, v in stage_params.items() if v is not None},
+                      codec_options={"preset": preset} if preset else None, progress=progress)
     stream = encoder.encode(cloud)
     if dynamic is not None:
         add_deformation(stream, dynamic.arch, dynamic.net.weights())
@@ -66,6 +71,7 @@ def encode_file(
         "rate_point": encoder.rate_point.name,
         "sh_stage": encoder.rate_point.sh_stage,
         "input_gaussians": cloud.num_gaussians,
+        "sh_degree": cloud.sh_degree,
         "num_gaussians": stream.header["num_gaussians"],
         "bytes": size,
         "bits_per_gaussian": 8.0 * size / cloud.num_gaussians,

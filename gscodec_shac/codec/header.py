@@ -530,6 +530,9 @@ def _optional_integer(value: Any, key: str, lo: int, hi: int) -> int | None:
 def describe(view: StreamHeader) -> dict[str, Any]:
     """A JSON-serialisable summary of a checked header (``gscodec-shac info`` of a ``.gsc``)."""
     n = view.num_gaussians
+    # bits per *input* Gaussian, as encode and rd report them; a stream older than the
+    # input count (format 1.x before input_gaussians) falls back to the decoded count
+    per = view.input_gaussians if view.input_gaussians is not None else n
     sizes: dict[str, int] = {"header": view.total_bytes - sum(view.chunk_bytes.values())}
     for name, size in view.chunk_bytes.items():
         attribute = view.chunk_attributes[name]
@@ -555,9 +558,10 @@ def describe(view: StreamHeader) -> dict[str, Any]:
         "deformation": ({"arch": view.deformation.arch.to_dict(), "weights": view.deformation.weights,
                          "dtype": view.deformation.dtype, "bytes": view.chunk_bytes.get("deformation", 0)}
                         if view.deformation else None),
-        "bits_per_gaussian": 8.0 * view.total_bytes / n,
+        "bits_per_gaussian": 8.0 * view.total_bytes / per,
+        "bits_per_gaussian_of": "input" if view.input_gaussians is not None else "decoded",
         "decoded_bytes": view.decoded_bytes(),
-        "attributes": {name: {"bytes": size, "bits_per_gaussian": 8.0 * size / n} for name, size in sizes.items()},
+        "attributes": {name: {"bytes": size, "bits_per_gaussian": 8.0 * size / per} for name, size in sizes.items()},
         "chunks": [
             {"name": name, "bytes": size, "attribute": view.chunk_attributes[name],
              "bits": plans[name].bits if name in plans else None, "qp": plans[name].qp if name in plans else None,

@@ -230,12 +230,15 @@ def load_rate_point(ref: "str | Path | RatePoint") -> RatePoint:
     text = str(ref)
     path, point = _split_reference(text)
     points = load_rate_point_file(path)
+    # name the file as the user did: a shipped set by its name (shac_ladder), a file by its path
+    shown = text.rsplit(":", 1)[0] if point is not None else text
     if point is None:
         if len(points) != 1:
-            raise RatePointError(f"{path}: holds {len(points)} rate points ({', '.join(points)}); name one as {path}:POINT")
+            raise RatePointError(f"{shown}: holds {len(points)} rate points ({', '.join(points)}); name one as "
+                                 f"{shown}:POINT")
         return next(iter(points.values()))
     if point not in points:
-        raise RatePointError(f"{path}: no rate point {point!r}; it has {', '.join(points)}")
+        raise RatePointError(f"{shown}: no rate point {point!r}; it has {', '.join(points)}")
     return points[point]
 
 

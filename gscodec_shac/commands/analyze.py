@@ -41,7 +41,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                   "gscodec-shac analyze --synthetic 100000 --seeds 0 1 2"],
     )
     parser.add_argument("scenes", nargs="*", metavar="SCENE", help="models with SH degree >= 1 (Inria .ply, .spz, "
-                        ".sog, compressed.ply, gsplat .pt, ...)")
+                        ".sog, compressed.ply, gsplat .pt, a .gsc, ...)")
     parser.add_argument("--er", type=float, default=0.95, help="energy retention target (default 0.95)")
     parser.add_argument("--k", type=int, default=24, help="components / columns for the energy column (default 24)")
     parser.add_argument("--out", metavar="DIR",

@@ -13,15 +13,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         subparsers, "decode",
         help="decompress a .gsc file into a 3DGS PLY any viewer opens",
         description="Decode a .gsc file into a 3DGS model, written atomically; the output's extension picks "
-        "the format: .ply (Inria 3DGS, any viewer opens it), .spz, .splat, .sog or .pt (a gsplat checkpoint); "
-        "DIR/meta.json writes an unbundled SOG (meta.json and its WebP images in DIR). "
+        "the format: .ply (Inria 3DGS, any viewer opens it), .compressed.ply (PlayCanvas's chunked format), .spz, "
+        ".splat, .sog or .pt (a gsplat checkpoint); DIR/meta.json writes an unbundled SOG (meta.json and its WebP "
+        "images in DIR). "
         "A dynamic model (a stream with a deformation network) decodes to a model directory: point_cloud.ply "
         "(canonical Gaussians), deformation.npz and deformation.json.",
         examples=["gscodec-shac decode scene.gsc decoded.ply", "gscodec-shac decode scene.gsc decoded.spz"],
     )
     parser.add_argument("input", metavar="IN.gsc", help="input .gsc")
-    parser.add_argument("output", metavar="OUT", help="output model: .ply (Inria 3DGS), .spz, .splat, .sog, "
-                        "DIR/meta.json (unbundled SOG) or .pt (gsplat checkpoint); a directory for a dynamic model")
+    parser.add_argument("output", metavar="OUT", help="output model: .ply (Inria 3DGS), .compressed.ply, .spz, .splat, "
+                        ".sog, DIR/meta.json (unbundled SOG) or .pt (gsplat checkpoint); a directory for a dynamic model")
     add_quiet(parser)
     add_force(parser)
     parser.set_defaults(func=run)

@@ -29,21 +29,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = add_command(
         subparsers, "encode",
         help="compress a 3DGS model into one .gsc file",
-        description="Compress a 3DGS model (Inria PLY, SPZ, .splat, SOG, compressed.ply, gsplat checkpoint) "
-        "into a self-describing .gsc file at a rate point (a shipped one such as paper_table3:rp2, see "
+        description="Compress a 3DGS model (Inria PLY, SPZ, .splat, SOG, compressed.ply, gsplat checkpoint, or "
+        "a .gsc to re-encode) into a self-describing .gsc file. By default SHAC-PCA (ER 0.99) on the rate point "
+        "shac_ladder:rp5, chosen to be smaller than SPZ at a better PSNR on the shared scenes (docs/formats.md); "
+        "or at a rate point (a shipped one such as paper_table3:rp2, see "
         "'gscodec-shac rate-points', or FILE.yaml[:POINT]), optionally with an SH stage; or to a target "
         "size or quality, with the settings chosen per scene by the rate controller.",
-        examples=["gscodec-shac encode scene.ply scene.gsc --rate-point paper_table3:rp2 --sh pca --er 0.99",
+        examples=["gscodec-shac encode scene.ply scene.gsc",
+                  "gscodec-shac encode scene.ply scene.gsc --rate-point paper_table3:rp2 --sh pca --er 0.99",
                   "gscodec-shac encode scene.ply scene.gsc --target-size 2.5MB"],
     )
     parser.add_argument("input", metavar="IN", help="input model: Inria .ply, .compressed.ply, .spz, .splat, .sog, "
-                        "SOG meta.json (or its folder), gsplat checkpoint .pt, or a dynamic model directory "
+                        "SOG meta.json (or its folder), gsplat checkpoint .pt, a .gsc (decoded and re-encoded), or a dynamic model "
+                        "directory "
                         "(its canonical Gaussians are coded as any model, the deformation network as one float16 "
                         "chunk)")
     parser.add_argument("output", metavar="OUT.gsc", help="output .gsc (written atomically)")
     parser.add_argument("--rate-point", "-r", metavar="SET:POINT",
-                        help="e.g. paper_table3:rp2, mpeg_ctc_video:rp01, gsplat_png, my.yaml:fast (default: "
-                        "paper_table3:rp2; with a target: the template shac_auto:template); list them with "
+                        help="e.g. paper_table3:rp2 (the paper's), shac_ladder:rp3, my.yaml:fast (default: "
+                        "shac_ladder:rp5 with --sh pca --er 0.99, about visually lossless and smaller than SPZ, "
+                        "see docs/formats.md; with a target: the template shac_auto:template); list them with "
                         "'gscodec-shac rate-points'")
     target = parser.add_argument_group("rate control (one target; the settings are chosen per scene)")
     target.add_argument("--target-size", metavar="SIZE",
@@ -60,7 +65,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "NeRF-synthetic scenes use 1,1,1)")
     add_up(target, "the orbit views without --cameras")
     parser.add_argument("--sh", choices=STAGES.names(),
-                        help="SH stage (default: the rate point's): "
+                        help="SH stage (default: pca without --rate-point, else the rate point's): "
                         + "; ".join(f"{name}: {cls.summary}" for name, cls in STAGES.items()))
     for flag, users in stage_options().items():
         kind = users[0][1].kind
@@ -82,21 +87,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from gscodec_shac.atomic import check_output
-    from gscodec_shac.errors import GscodecError
     from gscodec_shac.codec import encode_file
+    from gscodec_shac.codec.defaults import DEFAULT_RATE_POINT, DEFAULT_SH_STAGE, choose_default_sh
     from gscodec_shac.codec.rate_points import load_rate_point
+    from gscodec_shac.errors import GscodecError
     from gscodec_shac.io.models import report_notes
 
-    check_output(args.output, force=args.force,
-                 inputs=[args.input, (args.rate_point or "").rsplit(":", 1)[0], args.cameras])
+    check_paths(args)
     targets = (args.target_size, args.target_bpg, args.target_psnr)
     if any(t is not None for t in targets):
         return _run_to_target(args)
     if args.cameras is not None:
         raise GscodecError("--cameras applies to --target-psnr (the views the quality is judged from)")
-    point = load_rate_point(args.rate_point or "paper_table3:rp2")
-    stage = args.sh or point.sh_stage
+    default = args.rate_point is None
+    point = load_rate_point(args.rate_point or DEFAULT_RATE_POINT)
+    automatic = default and args.sh is None  # the SH stage is chosen from the model (codec/defaults.py)
+    stage = args.sh or (DEFAULT_SH_STAGE if default else point.sh_stage)
     params = {}
     for flag, users in stage_options().items():
         value = getattr(args, flag)
@@ -109,27 +115,66 @@ def run(args: argparse.Namespace) -> int:
         params[param.name] = value
     if args.seed is not None and any(p.name == "seed" for p in STAGES.get(stage).params):
         params["seed"] = args.seed  # --seed seeds the stage (e.g. vq's k-means) as well as the sorting
+    if params:  # stage options without --sh: they set the default's PCA
+        automatic = False
     summary = encode_file(
-        args.input, args.output, point, sh=args.sh, sort=args.sort, seed=args.seed, preset=args.preset,
-        progress=not args.quiet and sys.stderr.isatty(), **params,
+        args.input, args.output, point, sh=stage, sort=args.sort, seed=args.seed, preset=args.preset,
+        progress=not args.quiet and sys.stderr.isatty(), choose_sh=choose_default_sh if automatic else None,
+        **params,
     )
-    report_notes(summary["notes"])
+    notes = list(summary["notes"])
+    if summary.get("sh_degree") == 0 and args.sh not in (None, "none"):
+        notes.append(f"{args.input}: SH degree 0 (no AC coefficients), so the SH stage {stage!r} has nothing "
+                     "to do (a no-op)")
+    report_notes(notes)
+    summary["default"] = default
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
-        print(
-            f"wrote {summary['output']}: {summary['bytes']:,} bytes, {summary['bits_per_gaussian']:.2f} bits/Gaussian "
-            f"({summary['num_gaussians']:,} Gaussians, {summary['rate_point']}, SH stage {summary['sh_stage']}) "
-            f"in {summary['seconds']:.1f} s"
-        )
+        chosen = (describe_default(summary["sh_stage"]) if automatic else
+                  f"{summary['rate_point']}, SH stage {summary['sh_stage'] or 'none'}")
+        print(f"wrote {summary['output']}: {summary['bytes']:,} bytes, {size_phrase(summary)} "
+              f"({'default: ' if default else ''}{chosen}) in {summary['seconds']:.1f} s")
     return 0
+
+
+def describe_default(stage: str | None) -> str:
+    """The default encode in words (from :mod:`gscodec_shac.codec.defaults`)."""
+    from gscodec_shac.codec.defaults import describe_default as describe
+
+    return describe(stage)
+
+
+def size_phrase(summary: dict) -> str:
+    """``154.41 bits per input Gaussian (75,000 in, 7,732 pruned)``: the one bits-per-Gaussian
+    definition of every command (file bits / Gaussians given to the encoder)."""
+    n_in, n_out = summary["input_gaussians"], summary["num_gaussians"]
+    removed = n_in - n_out
+    kept = f"{removed:,} pruned" if removed else "none pruned"
+    return f"{summary['bits_per_gaussian']:.2f} bits per input Gaussian ({n_in:,} in, {kept})"
+
+
+def check_paths(args: argparse.Namespace) -> None:
+    """The input first (a missing input is the error to see), then the output's name and place."""
+    from pathlib import Path
+
+    from gscodec_shac.atomic import check_output
+    from gscodec_shac.errors import GscodecError, OutputError
+
+    if not Path(args.input).exists():
+        raise GscodecError(f"{args.input}: no such file or folder")
+    check_output(args.output, force=args.force,
+                 inputs=[args.input, (args.rate_point or "").rsplit(":", 1)[0], args.cameras])
+    if Path(args.output).suffix.lower() != ".gsc":
+        raise OutputError(f"{args.output}: encode writes a .gsc file; name the output OUT.gsc (to write another "
+                          "model format use 'gscodec-shac convert IN OUT')")
 
 
 def _run_to_target(args: argparse.Namespace) -> int:
     import json
 
     from gscodec_shac.codec import encode_file_to_target
-    from gscodec_shac.codec.rate_control import TEMPLATE
+    from gscodec_shac.codec.rate_control import SIZE_TOLERANCE, TEMPLATE
     from gscodec_shac.commands._options import comma_floats
     from gscodec_shac.errors import GscodecError
     from gscodec_shac.io.models import report_notes
@@ -145,13 +190,21 @@ def _run_to_target(args: argparse.Namespace) -> int:
         background=tuple(comma_floats(args.background, "--background")),
         preset=args.preset, progress=not args.quiet and sys.stderr.isatty(),
     )
-    report_notes(summary["notes"])
+    notes = list(summary["notes"])
+    control = summary["rate_control"]
+    target = control["target"]
+    if target["kind"] == "bytes" and summary["bytes"] < (1 - 2 * SIZE_TOLERANCE) * target["value"]:
+        what = (f"--target-size {args.target_size}" if args.target_size is not None
+                else f"--target-bpg {args.target_bpg:g}")
+        notes.append(f"{what} is above the largest file the rate controller makes for this scene: its best "
+                     f"settings need only {summary['bytes']:,} bytes, which were written")
+    report_notes(notes)
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0
-    control = summary["rate_control"]
     settings = ", ".join(f"{k} {v}" for k, v in control["settings"].items())
-    quality = f", {control['measured_psnr']:.2f} dB against the uncompressed model"
-    print(f"wrote {summary['output']}: {summary['bytes']:,} bytes, {summary['bits_per_gaussian']:.2f} bits/Gaussian"
-          f"{quality} ({settings}; {control['encodes']} encode(s)) in {summary['seconds']:.1f} s")
+    quality = f", {control['measured_psnr']:.2f} dB against the uncompressed model" if "measured_psnr" in control else ""
+    print(f"wrote {summary['output']}: {summary['bytes']:,} bytes, {size_phrase(summary)}"
+          f"{quality} (rate control, {summary['rate_point']}: {settings}; {control['encodes']} encode(s)) "
+          f"in {summary['seconds']:.1f} s")
     return 0

@@ -6,7 +6,7 @@ import argparse
 import json
 from typing import Any
 
-from gscodec_shac.commands._options import add_command, add_json
+from gscodec_shac.commands._options import add_command, add_json, add_up
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -16,17 +16,35 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Describe a 3DGS model (Gaussian count, SH degree, per-attribute ranges, bytes per "
         "Gaussian, SH share) or a .gsc file (header summary, bytes and bits per Gaussian per attribute and "
         "chunk, QPs and codecs).",
-        examples=["gscodec-shac info scene.gsc", "gscodec-shac info scene.ply --json"],
+        examples=["gscodec-shac info scene.gsc", "gscodec-shac info scene.ply --json",
+                  "gscodec-shac info --compare scene.ply scene.gsc --cameras cameras.json"],
     )
-    parser.add_argument("file", metavar="FILE", help="a .gsc file or a model: Inria .ply, .compressed.ply, .spz, "
+    parser.add_argument("file", metavar="FILE", nargs="?", help="a .gsc file or a model: Inria .ply, .compressed.ply, .spz, "
                         ".splat, .sog, SOG meta.json (or its folder), gsplat checkpoint .pt, a dynamic model "
                         "directory (deformation.json)")
+    compare = parser.add_argument_group("comparing two models (instead of FILE)")
+    compare.add_argument("--compare", nargs=2, metavar=("A", "B"),
+                         help="PSNR of model B rendered against model A (either may be a .gsc or any model "
+                         "format), on --cameras or else orbit views")
+    compare.add_argument("--cameras", help="views to compare from (any camera file or capture folder)")
+    compare.add_argument("--views", type=int, default=8, metavar="N", help="orbit views without --cameras, and "
+                         "at most this many of --cameras (default 8)")
+    compare.add_argument("--width", type=int, default=320, help="render width (default 320)")
+    add_up(compare, "the orbit views without --cameras")
     add_json(parser, "the description")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from gscodec_shac.codec.container import is_gsc
+    from gscodec_shac.errors import GscodecError
+
+    if args.compare:
+        if args.file is not None:
+            raise GscodecError("give either FILE or --compare A B, not both")
+        return _compare(args)
+    if args.file is None:
+        raise GscodecError("info needs a FILE (or --compare A B)")
 
     if is_gsc(args.file):
         from gscodec_shac.codec.container import Bitstream
@@ -53,6 +71,50 @@ def run(args: argparse.Namespace) -> int:
     report_notes(notes)
     summary = describe_cloud(cloud, args.file)
     print(json.dumps(summary, indent=2) if args.json else format_cloud_summary(summary))
+    return 0
+
+
+def _compare(args: argparse.Namespace) -> int:
+    """``info --compare A B``: PSNR of B's renders against A's on the same views."""
+    import math
+
+    import numpy as np
+
+    from gscodec_shac.commands._options import comma_floats, resize_cameras
+    from gscodec_shac.errors import GscodecError
+    from gscodec_shac.io.models import model_bytes, read_model, report_notes
+    from gscodec_shac.render.renderer import render_views
+
+    if args.views < 1 or args.width < 1:
+        raise GscodecError(f"--views and --width must be positive, got {args.views} and {args.width}")
+    first, notes = read_model(args.compare[0])
+    second, more = read_model(args.compare[1])
+    report_notes(notes + more)
+    if args.cameras:
+        from gscodec_shac.io.cameras import load_cameras
+
+        views = sorted(load_cameras(args.cameras), key=lambda c: c.name)
+        views = [views[i] for i in np.linspace(0, len(views) - 1, min(args.views, len(views))).round().astype(int)]
+        views = resize_cameras(views, None, min(args.width, min(v.width for v in views)))
+        source = f"{len(views)} views of {args.cameras}"
+    else:
+        from gscodec_shac.camera import orbit_views
+
+        views = orbit_views(first.means, args.views, args.width, up=comma_floats(args.up, "--up"), elevations=(20.0,))
+        source = f"{len(views)} orbit views"
+    reference = render_views(first, views, progress=False)
+    images = render_views(second, views, progress=False)
+    mse = float(np.mean([np.mean((a - b) ** 2) for a, b in zip(reference, images)]))
+    psnr = 10.0 * math.log10(1.0 / mse) if mse > 0 else math.inf
+    result = {"a": args.compare[0], "b": args.compare[1], "psnr": psnr, "views": len(views), "on": source,
+              "a_gaussians": first.num_gaussians, "b_gaussians": second.num_gaussians,
+              "a_bytes": model_bytes(args.compare[0]), "b_bytes": model_bytes(args.compare[1])}
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print(f"PSNR of {result['b']} against {result['a']}: {psnr:.2f} dB on {source} "
+              f"({result['a_gaussians']:,} / {result['b_gaussians']:,} Gaussians; "
+              f"{result['a_bytes']:,} / {result['b_bytes']:,} bytes)")
     return 0
 
 
@@ -84,12 +146,12 @@ def format_gsc_summary(summary: dict[str, Any]) -> str:
         f"{summary['producer']})",
         f"Gaussians         {summary['num_gaussians']:,} (input {summary['input_gaussians']:,}; "
         f"pruned {summary['pruned']:,}, dropped {summary['dropped']:,})",
-        f"SH                degree {summary['sh_degree']}, stage {summary['sh_stage']}"
+        f"SH                degree {summary['sh_degree']}, stage {summary['sh_stage'] or 'none'}"
         + (f" ({summary['sh_features']} features)" if summary["sh_features"] else ""),
         f"grid              {summary['grid']}, sort {summary['sort']}, padding {summary['padding']}, colour {summary['color']}",
         f"rate point        {summary['rate_point']}" + _target(summary.get("target")),
-        f"bits per Gaussian {summary['bits_per_gaussian']:.3f}",
-        "attribute                 bytes   share  bits/Gaussian",
+        f"bits/Gaussian     {summary['bits_per_gaussian']:.3f} bits per {_per(summary)} Gaussian",
+        f"attribute                 bytes   share  bits/{summary.get('bits_per_gaussian_of', 'input')} G",
     ]
     for name, info in summary["attributes"].items():
         share = 100.0 * info["bytes"] / summary["bytes"]
@@ -102,6 +164,13 @@ def format_gsc_summary(summary: dict[str, Any]) -> str:
         bits = "-" if chunk["bits"] is None else str(chunk["bits"])
         lines.append(f"  {chunk['name']:<16} {chunk['bytes']:>12,} {bits:>5} {qp:>3}   {chunk['codec'] or '-'}")
     return "\n".join(lines)
+
+
+def _per(summary: dict[str, Any]) -> str:
+    """``input``, or for a stream without the input count ``decoded (no input count in this older stream)``."""
+    if summary.get("bits_per_gaussian_of", "input") == "input":
+        return "input"
+    return "decoded (no input count in this older stream)"
 
 
 def _target(target: dict | None) -> str:

@@ -41,7 +41,9 @@ def run(args: argparse.Namespace) -> int:
         from gscodec_shac.errors import OutputError
 
         raise OutputError(f"{out}: the report folder is a file")
-    check_outputs([out / "report.md", out / "bd.json", out / "bd.csv"], force=args.force, what="report")
+    # a report this command wrote before is regenerated in place; other files need --force
+    check_outputs([out / "report.md", out / "bd.json", out / "bd.csv"], force=args.force or _own_report(out),
+                  what="report")
     paths = write_report(args.results, args.out, anchor=args.anchor, x_axis=args.x_axis, title=args.title,
                          figure_prefix=args.prefix)
     rows = load_results(args.results)
@@ -63,3 +65,16 @@ def _anchor(results: str) -> str:
     if sweep.is_file():
         return (json.loads(sweep.read_text()).get("settings") or {}).get("anchor") or "baseline"
     return "baseline"
+
+
+def _own_report(out) -> bool:
+    """True when ``out`` holds a report rd-report wrote: report.md plus a bd.json of BD rows."""
+    import json
+
+    if not (out / "report.md").is_file() or not (out / "bd.json").is_file():
+        return False
+    try:
+        table = json.loads((out / "bd.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(table, list) and all(isinstance(r, dict) and "bd_rate_pct" in r for r in table)

@@ -38,7 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                   "gscodec-shac render jumpingjacks_model/ frames/ --cameras dnerf/jumpingjacks/transforms_test.json"],
     )
     parser.add_argument("scene", metavar="SCENE", help="a model: Inria .ply, .compressed.ply, .spz, .splat, .sog, "
-                        "SOG meta.json, gsplat .pt, or a dynamic model directory (see --time)")
+                        "SOG meta.json, gsplat .pt, a .gsc (decoded), or a dynamic model directory (see --time)")
     add_output(parser, "OUT_DIR", "output directory for the PNGs and metrics.json (created)")
     parser.add_argument("--cameras", help="cameras.json, transforms*.json, poses_bounds.npy, a COLMAP model "
                         "or a capture folder; default: an orbit around the scene")

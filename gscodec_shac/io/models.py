@@ -6,13 +6,15 @@ The reader is chosen by content where the format has a signature, else by extens
 format             recognised by                                               write
 =================  ==========================================================  =========
 ``ply``            ``ply`` magic, no ``chunk`` element (Inria 3DGS PLY)        ``.ply``
-``compressed-ply`` ``ply`` magic with ``chunk`` + ``packed_*`` properties      no
+``compressed-ply`` ``ply`` magic with ``chunk`` + ``packed_*`` properties      ``.compressed.ply``
 ``spz``            gzip magic or ``NGSP`` (version 4)                          ``.spz``
 ``sog``            a zip holding ``meta.json``; a SOG ``meta.json``; a folder  ``.sog``
                    holding one
 ``gsplat``         a zip holding ``data.pkl`` (torch), or ``.pt``/``.pth``     ``.pt``
 ``splat``          the ``.splat`` extension (no signature; size a multiple     ``.splat``
                    of 32)
+``gsc``            the ``.gsc`` magic (decoded; a dynamic stream gives its      no (encode)
+                   canonical Gaussians)
 =================  ==========================================================  =========
 
 A file without any of these signatures is handed to the reader its extension names,
@@ -36,12 +38,14 @@ from gscodec_shac.errors import ModelFormatError
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.io.model_common import FormatNote
 
-READ_FORMATS = ("ply", "compressed-ply", "spz", "splat", "sog", "gsplat")
+READ_FORMATS = ("ply", "compressed-ply", "spz", "splat", "sog", "gsplat", "gsc")
 #: Output extension -> format.
 WRITE_EXTENSIONS = {".ply": "ply", ".spz": "spz", ".splat": "splat", ".sog": "sog", ".pt": "gsplat", ".pth": "gsplat"}
+#: A name ending like this is written as PlayCanvas's compressed PLY (its suffix alone is ``.ply``).
+COMPRESSED_PLY_SUFFIX = ".compressed.ply"
 _SUPPORTED = (
-    "Inria .ply, PlayCanvas .compressed.ply, .spz (versions 1-3; 4 with zstandard), .splat, "
-    "SOG (.sog, meta.json or its folder), gsplat checkpoint .pt"
+    "Inria .ply, PlayCanvas .compressed.ply, .spz (versions 1-4), .splat, "
+    "SOG (.sog, meta.json or its folder), gsplat checkpoint .pt, .gsc"
 )
 
 
@@ -58,8 +62,12 @@ def detect_format(path: str | os.PathLike) -> str:
         if find_sog_meta(path) is not None:
             return "sog"
         raise ModelFormatError(f"{path}: is a directory without a SOG meta.json; supported: {_SUPPORTED}")
+    from gscodec_shac.codec.container import MAGIC
+
     with open(path, "rb") as handle:
         head = handle.read(4096)
+    if head.startswith(MAGIC):
+        return "gsc"
     if head.startswith(b"ply"):
         text = head.decode("latin-1")
         return "compressed-ply" if is_compressed_ply_header(text.split("end_header")[0]) else "ply"
@@ -144,26 +152,50 @@ def _readers() -> dict[str, Callable[[Any], GaussianCloud]]:
     from gscodec_shac.io.splat import read_splat
     from gscodec_shac.io.spz import read_spz
 
-    return {"ply": read_ply, "compressed-ply": read_compressed_ply, "spz": read_spz, "splat": read_splat,
-            "sog": read_sog, "gsplat": read_gsplat_checkpoint}
+    return {"ply": _read_ply_clamped, "compressed-ply": read_compressed_ply, "spz": read_spz, "splat": read_splat,
+            "sog": read_sog, "gsplat": read_gsplat_checkpoint, "gsc": _read_gsc}
+
+
+def _read_ply_clamped(path: str | os.PathLike) -> GaussianCloud:
+    """An Inria PLY; infinite opacity logits (alpha 0/255, as splat-transform writes) clamped with a note."""
+    from gscodec_shac.io.ply import read_ply
+
+    return read_ply(path, clamp_opacity=True)
+
+
+def _read_gsc(path: str | os.PathLike) -> GaussianCloud:
+    """A ``.gsc`` stream, decoded (a dynamic model's canonical Gaussians, with a note)."""
+    from gscodec_shac.codec.container import Bitstream
+    from gscodec_shac.codec.decoder import Decoder
+    from gscodec_shac.io.model_common import note
+
+    stream = Bitstream.read(path)
+    if "deformation" in stream.features:
+        note(f"{path}: a dynamic model; its canonical Gaussians are read (the deformation network is not)")
+    return Decoder().decode(stream)
 
 
 def _writers() -> dict[str, Callable[..., None]]:
+    from gscodec_shac.io.compressed_ply_writer import write_compressed_ply
     from gscodec_shac.io.gsplat_ckpt import write_gsplat_checkpoint
     from gscodec_shac.io.ply import write_ply
     from gscodec_shac.io.sog import write_sog
     from gscodec_shac.io.splat import write_splat
     from gscodec_shac.io.spz import write_spz
 
-    return {"ply": write_ply, "spz": write_spz, "splat": write_splat, "sog": write_sog, "gsplat": write_gsplat_checkpoint}
+    return {"ply": write_ply, "spz": write_spz, "splat": write_splat, "sog": write_sog, "gsplat": write_gsplat_checkpoint,
+            "compressed-ply": write_compressed_ply}
 
 
 def output_format(path: str | os.PathLike) -> str | None:
-    """The format a model output path names: by extension, or ``sog`` for a ``meta.json`` (an
-    unbundled SOG: the file and its images beside it); None when it names none."""
+    """The format a model output path names: by extension (``x.compressed.ply`` -> ``compressed-ply``),
+    or ``sog`` for a ``meta.json`` (an unbundled SOG: the file and its images beside it); None when
+    it names none."""
     path = Path(path)
     if path.name == "meta.json":
         return "sog"
+    if path.name.lower().endswith(COMPRESSED_PLY_SUFFIX):
+        return "compressed-ply"
     return WRITE_EXTENSIONS.get(path.suffix.lower())
 
 
@@ -183,5 +215,5 @@ def check_model_extension(path: str | os.PathLike) -> None:
         suffix = Path(path).suffix.lower()
         raise ModelFormatError(
             f"{path}: cannot write a Gaussian model with extension {suffix or '(none)'!r}; "
-            f"writable: {', '.join(WRITE_EXTENSIONS)} or a SOG meta.json"
+            f"writable: {', '.join([*WRITE_EXTENSIONS, COMPRESSED_PLY_SUFFIX])} or a SOG meta.json"
         )

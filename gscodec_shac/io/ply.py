@@ -123,7 +123,11 @@ def read_ply(path: str | os.PathLike, *, clamp_opacity: bool = False) -> Gaussia
     with np.errstate(over="ignore", invalid="ignore"):  # doubles beyond float32 become inf: reported below
         f_rest = stack([f"f_rest_{i}" for i in rest_ids])
         opacity = np.asarray(table["opacity"], dtype=np.float32)
-        if clamp_opacity:
+        if clamp_opacity and np.isinf(opacity).any():
+            from gscodec_shac.io.model_common import note
+
+            note(f"{path}: {int(np.isinf(opacity).sum()):,} infinite opacity logit(s) (8-bit alpha 0 or 255) "
+                 f"clamped to +-{OPACITY_LOGIT_LIMIT:g}")
             opacity = np.where(np.isinf(opacity), np.sign(opacity) * np.float32(OPACITY_LOGIT_LIMIT), opacity)
         _check_finite_columns(path, table, [c for c in _REQUIRED if c != "opacity"], f_rest, opacity)
     known = set(_REQUIRED) | {f"f_rest_{i}" for i in rest_ids}

@@ -1,4 +1,4 @@
-"""Read and write Niantic SPZ files (versions 1-3: one gzip stream; version 4 read with ``zstandard``).
+"""Read and write Niantic SPZ files (versions 1-3: one gzip stream; version 4: zstd streams, ``zstandard``).
 
 Layout of versions 1-3 (little-endian, the whole file gzip-compressed)::
 
@@ -16,7 +16,8 @@ Layout of versions 1-3 (little-endian, the whole file gzip-compressed)::
                    colour innermost); degree 1 is stored on 5 bits, higher ones on 4 by default
 
 Version 4 holds the same six streams each zstd-compressed behind a 32-byte header and a
-table of contents; it is read when the ``zstandard`` package is installed.
+table of contents (per stream: compressed and raw size, u64 each) right after the header;
+``zstandard`` (a dependency) reads and writes it.
 
 Coordinates: SPZ stores RUB (x right, y up, z back); 3DGS PLYs and this package use RDF,
 so y and z are flipped on the way in and out (``coordinates="rub"``, as Niantic's
@@ -79,14 +80,14 @@ def write_spz(
     sh1_bits: int = 5,
     sh_rest_bits: int = 4,
 ) -> None:
-    """Write ``cloud`` as a gzip SPZ of ``version`` 2 or 3, atomically.
+    """Write ``cloud`` as a gzip SPZ of ``version`` 2 or 3, or a zstd SPZ of version 4, atomically.
 
     ``sh1_bits``/``sh_rest_bits`` (1-8): precision kept for SH degree 1 and for
     degrees 2+ (Niantic's defaults 5 and 4; 8 keeps all the format holds).
     """
     _check_coordinates(coordinates)
-    if version not in (2, 3):
-        raise ModelFormatError(f"{path}: SPZ version {version} cannot be written (versions 2 and 3 can)")
+    if version not in (2, 3, 4):
+        raise ModelFormatError(f"{path}: SPZ version {version} cannot be written (versions 2, 3 and 4 can)")
     for name, bits in (("sh1_bits", sh1_bits), ("sh_rest_bits", sh_rest_bits)):
         if not 1 <= bits <= 8:
             raise ModelFormatError(f"{path}: {name} must be 1-8, got {bits}")
@@ -108,11 +109,25 @@ def write_spz(
     colors = to_uint8(cloud.sh_dc.astype(np.float64) * (COLOR_SCALE * 255.0) + 127.5)
     sh_bytes = _quantize_sh(cloud.sh_rest, sh1_bits, sh_rest_bits)
 
-    header = _LEGACY_HEADER.pack(MAGIC, version, n, cloud.sh_degree, fractional_bits, 0, 0)
-    body = b"".join(a.tobytes() for a in (positions, alphas, colors, scales, rotations, sh_bytes))
     if cloud.extra:
         note(f"{path}: SPZ has no place for extra properties; dropped {', '.join(cloud.extra)}")
-    write_atomic(path, gzip.compress(header + body, compresslevel=6, mtime=0), error=ModelFormatError)
+    streams = [a.tobytes() for a in (positions, alphas, colors, scales, rotations, sh_bytes)]
+    if version == 4:
+        write_atomic(path, _pack_v4(n, cloud.sh_degree, fractional_bits, streams), error=ModelFormatError)
+        return
+    header = _LEGACY_HEADER.pack(MAGIC, version, n, cloud.sh_degree, fractional_bits, 0, 0)
+    write_atomic(path, gzip.compress(header + b"".join(streams), compresslevel=6, mtime=0), error=ModelFormatError)
+
+
+def _pack_v4(n: int, degree: int, fractional_bits: int, streams: list[bytes]) -> bytes:
+    """Version 4: the 32-byte header, the table of contents, then each non-empty stream zstd-compressed."""
+    import zstandard
+
+    packed = [zstandard.ZstdCompressor(level=12).compress(s) for s in streams if s]
+    raw_sizes = [len(s) for s in streams if s]
+    header = _V4_HEADER.pack(MAGIC, 4, n, degree, fractional_bits, 0, len(packed), _V4_HEADER.size)
+    toc = b"".join(struct.pack("<QQ", len(p), size) for p, size in zip(packed, raw_sizes))
+    return header + toc + b"".join(packed)
 
 
 # ------------------------------------------------------------------ reading

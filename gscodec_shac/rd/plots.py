@@ -16,7 +16,7 @@ from typing import Any
 from gscodec_shac.rd.curves import Curve, curves, short_rate_point
 
 X_AXES = {"mb": ("size (MB)", lambda r: float(r["bytes"]) / 1e6),
-          "bpg": ("bits per Gaussian", lambda r: float(r["bits_per_gaussian"]))}
+          "bpg": ("bits per input Gaussian", lambda r: float(r["bits_per_gaussian"]))}
 _MARKERS = "os^Dv<>pPX*h"
 
 

@@ -126,7 +126,7 @@ def rd_table_markdown(rows: list[dict[str, Any]]) -> list[str]:
     """One Markdown table of the ok rows of one scene (method x rate point)."""
     has_gt = any(r.get("psnr_gt") is not None for r in rows)
     has_lpips = any(r.get("lpips_ref") is not None for r in rows)
-    head = ["method", "rate point", "MB", "bits/G", "SH share"]
+    head = ["method", "rate point", "MB", "bits per input G", "SH share"]
     if has_gt:
         head += ["PSNR gt", "SSIM gt"] + (["LPIPS gt"] if has_lpips else [])
     head += ["PSNR ref", "SSIM ref"] + (["LPIPS ref"] if has_lpips else []) + ["enc s", "dec s"]
