@@ -38,7 +38,9 @@ import numpy as np
 import gscodec_shac.render  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads OpenMP)
 import torch  # noqa: E402
 
-from gscodec_shac.deform_arch import ARCH_FILE, MODEL_PLY, WEIGHTS_FILE, DeformArch, is_dynamic_model
+from gscodec_shac.deform_arch import (
+    ARCH_FILE, MODEL_PLY, WEIGHTS_FILE, DeformArch, is_dynamic_model, is_own_dynamic_model,
+)
 from gscodec_shac.errors import ModelFormatError
 from gscodec_shac.gaussians import GaussianCloud
 
@@ -195,12 +197,17 @@ def load_weights_npz(path: PathLike) -> dict[str, np.ndarray]:
 
 
 def load_dynamic_model(path: PathLike) -> DynamicModel:
-    """Read a dynamic model directory (see the module docstring)."""
+    """Read a dynamic model directory (see the module docstring) or a Deformable-3DGS output folder
+    (:mod:`gscodec_shac.io.deformable3dgs`)."""
+    from gscodec_shac.io.deformable3dgs import is_deformable_output, load_deformable3dgs
     from gscodec_shac.io.ply import read_ply
 
     path = Path(path)
-    if not is_dynamic_model(path):
-        raise ModelFormatError(f"{path}: not a dynamic model directory (no {ARCH_FILE})")
+    if not is_own_dynamic_model(path):
+        if is_deformable_output(path):
+            return load_deformable3dgs(path)
+        raise ModelFormatError(f"{path}: not a dynamic model directory (no {ARCH_FILE}, and not a "
+                               "Deformable-3DGS output folder)")
     arch = read_arch(path / ARCH_FILE)
     net = DeformNetwork(arch)
     if not (path / WEIGHTS_FILE).is_file():

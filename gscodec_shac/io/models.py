@@ -13,6 +13,8 @@ format             recognised by                                               w
 ``gsplat``         a zip holding ``data.pkl`` (torch), or ``.pt``/``.pth``     ``.pt``
 ``splat``          the ``.splat`` extension (no signature; size a multiple     ``.splat``
                    of 32)
+``deformable3dgs`` a folder holding ``point_cloud/`` and ``deform/`` (or one    no
+                   of their ``iteration_N``): the canonical Gaussians only
 =================  ==========================================================  =========
 
 A file without any of these signatures is handed to the reader its extension names,
@@ -37,7 +39,7 @@ from gscodec_shac.errors import ModelFormatError
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.io.model_common import FormatNote
 
-READ_FORMATS = ("ply", "compressed-ply", "spz", "splat", "sog", "gsplat")
+READ_FORMATS = ("ply", "compressed-ply", "spz", "splat", "sog", "gsplat", "deformable3dgs")
 #: Output extension -> format.
 WRITE_EXTENSIONS = {".ply": "ply", ".spz": "spz", ".splat": "splat", ".sog": "sog", ".pt": "gsplat", ".pth": "gsplat"}
 _SUPPORTED = (
@@ -49,6 +51,7 @@ _SUPPORTED = (
 def detect_format(path: str | os.PathLike) -> str:
     """The format name of ``path`` (see the module table); unknown -> :class:`ModelFormatError`."""
     from gscodec_shac.io.compressed_ply import is_compressed_ply_header
+    from gscodec_shac.io.deformable3dgs import is_deformable_output
     from gscodec_shac.io.sog import find_sog_meta
 
     path = Path(path)
@@ -57,6 +60,8 @@ def detect_format(path: str | os.PathLike) -> str:
     if path.is_dir():
         if find_sog_meta(path) is not None:
             return "sog"
+        if is_deformable_output(path):
+            return "deformable3dgs"
         raise ModelFormatError(f"{path}: is a directory without a SOG meta.json; supported: {_SUPPORTED}")
     with open(path, "rb") as handle:
         head = handle.read(4096)
@@ -115,9 +120,14 @@ def report_notes(notes: list[str], stream: TextIO | None = None) -> None:
 
 
 def model_bytes(path: str | os.PathLike) -> int:
-    """Bytes a model occupies: the file, or for a SOG ``meta.json`` or folder, it and its images."""
+    """Bytes a model occupies: the file, or for a SOG ``meta.json`` or folder, it and its images;
+    for a dynamic model directory, its canonical PLY and network files."""
     path = Path(path)
+    from gscodec_shac.deform_arch import dynamic_model_files
     from gscodec_shac.io.sog import find_sog_meta
+
+    if path.is_dir() and dynamic_model_files(path):
+        return sum(f.stat().st_size for f in dynamic_model_files(path))
 
     meta = find_sog_meta(path)
     if meta is None:
@@ -146,6 +156,7 @@ def _collecting(call: Callable[[], Any]) -> tuple[Any, list[str]]:
 
 def _readers() -> dict[str, Callable[[Any], GaussianCloud]]:
     from gscodec_shac.io.compressed_ply import read_compressed_ply
+    from gscodec_shac.io.deformable3dgs import read_deformable3dgs_canonical
     from gscodec_shac.io.gsplat_ckpt import read_gsplat_checkpoint
     from gscodec_shac.io.ply import read_ply
     from gscodec_shac.io.sog import read_sog
@@ -153,7 +164,7 @@ def _readers() -> dict[str, Callable[[Any], GaussianCloud]]:
     from gscodec_shac.io.spz import read_spz
 
     return {"ply": read_ply, "compressed-ply": read_compressed_ply, "spz": read_spz, "splat": read_splat,
-            "sog": read_sog, "gsplat": read_gsplat_checkpoint}
+            "sog": read_sog, "gsplat": read_gsplat_checkpoint, "deformable3dgs": read_deformable3dgs_canonical}
 
 
 def _writers() -> dict[str, Callable[..., None]]:
