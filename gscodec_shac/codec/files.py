@@ -29,6 +29,7 @@ def encode_file(
     seed: int | None = None,
     preset: str | None = None,
     progress: bool = False,
+    network_bits: int | None = None,
     **stage_params: Any,
 ) -> dict[str, Any]:
     """Any model file ``read_model`` reads -> ``.gsc`` (written atomically); returns a summary
@@ -36,7 +37,8 @@ def encode_file(
 
     ``sh`` picks the SH stage (default: the rate point's), ``stage_params`` its
     parameters (e.g. ``energy_retention=0.99``); ``preset`` sets the lossy
-    codecs' speed preset (x265's ``preset`` option).
+    codecs' speed preset (x265's ``preset`` option); ``network_bits`` how a dynamic model's
+    network is stored (16: float16, 2..8: quantised; default 8, :mod:`.deformation`).
     """
     from gscodec_shac.deform_arch import is_dynamic_model
     from gscodec_shac.io.models import read_model
@@ -54,10 +56,15 @@ def encode_file(
         dynamic = load_dynamic_model(in_ply)
         cloud, notes = dynamic.cloud, []
     else:
+        if network_bits is not None:
+            raise GscodecError(f"{in_ply}: network bits apply to a dynamic model, this is a static one")
         cloud, notes = read_model(in_ply)
     stream = encoder.encode(cloud)
     if dynamic is not None:
-        add_deformation(stream, dynamic.arch, dynamic.net.weights())
+        from gscodec_shac.codec.deformation import DEFAULT_BITS
+
+        add_deformation(stream, dynamic.arch, dynamic.net.weights(),
+                        DEFAULT_BITS if network_bits is None else network_bits)
     with inputs_protected(in_ply):
         size = stream.write(out_gsc)
     return {
