@@ -199,13 +199,17 @@ def load_weights_npz(path: PathLike) -> dict[str, np.ndarray]:
 def load_dynamic_model(path: PathLike) -> DynamicModel:
     """Read a dynamic model directory (see the module docstring) or a Deformable-3DGS output folder
     (:mod:`gscodec_shac.io.deformable3dgs`)."""
-    from gscodec_shac.io.deformable3dgs import is_deformable_output, load_deformable3dgs
+    from gscodec_shac.io.deformable3dgs import read_deformable3dgs
+    from gscodec_shac.io.deformable3dgs_files import is_deformable_output
     from gscodec_shac.io.ply import read_ply
 
     path = Path(path)
     if not is_own_dynamic_model(path):
         if is_deformable_output(path):
-            return load_deformable3dgs(path)
+            cloud, arch, weights = read_deformable3dgs(path)
+            net = DeformNetwork(arch)
+            net.load_weights(weights, f"{path}: deform.pth")
+            return DynamicModel(cloud, net)
         raise ModelFormatError(f"{path}: not a dynamic model directory (no {ARCH_FILE}, and not a "
                                "Deformable-3DGS output folder)")
     arch = read_arch(path / ARCH_FILE)

@@ -116,14 +116,14 @@ def is_own_dynamic_model(path: str | os.PathLike) -> bool:
 def is_dynamic_model(path: str | os.PathLike) -> bool:
     """True for a dynamic model directory: ours, or a Deformable-3DGS output folder
     (:mod:`gscodec_shac.io.deformable3dgs`); :func:`gscodec_shac.deform.load_dynamic_model` reads both."""
-    from gscodec_shac.io.deformable3dgs import is_deformable_output
+    from gscodec_shac.io.deformable3dgs_files import is_deformable_output
 
     return is_own_dynamic_model(path) or is_deformable_output(path)
 
 
 def dynamic_model_files(path: str | os.PathLike) -> list[Path]:
     """The files a dynamic model directory is made of (empty for anything else): what its size counts."""
-    from gscodec_shac.io.deformable3dgs import is_deformable_output, iteration_files
+    from gscodec_shac.io.deformable3dgs_files import is_deformable_output, iteration_files
 
     path = Path(path)
     if is_own_dynamic_model(path):

@@ -37,74 +37,25 @@ from __future__ import annotations
 
 import io
 import os
-import re
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Mapping
 
 import numpy as np
 
+from gscodec_shac.deform_arch import DeformArch, weight_shapes
 from gscodec_shac.errors import ModelFormatError
+from gscodec_shac.gaussians import GaussianCloud
+from gscodec_shac.io.deformable3dgs_files import iteration_files
 
 PathLike = str | os.PathLike
-PLY_DIR, DEFORM_DIR = "point_cloud", "deform"
-PLY_NAME, DEFORM_NAME = "point_cloud.ply", "deform.pth"
 #: Sizes the reference's DeformNetwork fixes (utils/time_utils.py).
 XYZ_OCTAVES = 10
 BLENDER_T_OCTAVES, OTHER_T_OCTAVES = 6, 10
 TIME_WIDTH, TIME_OUT = 256, 30
 MAX_PTH_BYTES = 128 << 20  # far above the 2 MB of the reference's network
-_ITERATION = re.compile(r"iteration_(\d+)")
 #: Our parameter name -> the reference's.
 _RENAME = {"time_layers.0": "timenet.0", "time_layers.1": "timenet.2", "head_xyz": "gaussian_warp",
            "head_rot": "gaussian_rotation", "head_scale": "gaussian_scaling"}
-
-
-def _iteration(path: Path) -> int | None:
-    match = _ITERATION.fullmatch(path.name)
-    return int(match.group(1)) if match else None
-
-
-def locate(path: PathLike) -> tuple[Path, int | None] | None:
-    """``(output root, named iteration or None)`` when ``path`` is a Deformable-3DGS output folder
-    (one holding ``point_cloud/`` and ``deform/``) or one of its ``iteration_N`` folders; else None."""
-    path = Path(path)
-    if not path.is_dir():
-        return None
-    if (path / PLY_DIR).is_dir() and (path / DEFORM_DIR).is_dir():
-        return path, None
-    number = _iteration(path)
-    root = path.parent.parent
-    if number is not None and path.parent.name in (PLY_DIR, DEFORM_DIR) and (root / PLY_DIR).is_dir() \
-            and (root / DEFORM_DIR).is_dir():
-        return root, number
-    return None
-
-
-def is_deformable_output(path: PathLike) -> bool:
-    """True for a Deformable-3DGS output folder or one of its ``iteration_N`` folders (no torch needed)."""
-    return locate(path) is not None
-
-
-def iteration_files(path: PathLike) -> tuple[Path, Path, int]:
-    """``(point_cloud.ply, deform.pth, N)`` of the chosen iteration (see the module docstring)."""
-    found = locate(path)
-    if found is None:
-        raise ModelFormatError(f"{path}: not a Deformable-3DGS output folder (no {PLY_DIR}/ and {DEFORM_DIR}/)")
-    root, number = found
-    if number is None:
-        saved = sorted(n for n in map(_iteration, (root / PLY_DIR).iterdir())
-                       if n is not None and (root / PLY_DIR / f"iteration_{n}" / PLY_NAME).is_file())
-        if not saved:
-            raise ModelFormatError(f"{root}: no {PLY_DIR}/iteration_N/{PLY_NAME} (nothing saved yet?)")
-        number = saved[-1]
-    ply = root / PLY_DIR / f"iteration_{number}" / PLY_NAME
-    pth = root / DEFORM_DIR / f"iteration_{number}" / DEFORM_NAME
-    for file in (ply, pth):
-        if not file.is_file():
-            have = sorted(n for n in map(_iteration, file.parent.parent.iterdir()) if n is not None)
-            raise ModelFormatError(f"{root}: iteration {number} has no {file.relative_to(root)} "
-                                   f"(saved iterations there: {have or 'none'})")
-    return ply, pth, number
 
 
 def load_state_dict(pth: PathLike) -> dict[str, np.ndarray]:
@@ -130,10 +81,8 @@ def load_state_dict(pth: PathLike) -> dict[str, np.ndarray]:
     return out
 
 
-def reference_arch(state: Mapping[str, np.ndarray], where: str) -> Any:
+def reference_arch(state: Mapping[str, np.ndarray], where: str) -> DeformArch:
     """The :class:`~gscodec_shac.deform_arch.DeformArch` of a reference state dict (variant, depth, width)."""
-    from gscodec_shac.deform_arch import DeformArch
-
     if any(k.startswith(("branch_w.", "branch_v.")) for k in state):
         raise ModelFormatError(f"{where}: a 6-DoF network (branch_w/branch_v, --is_6dof) is not supported")
     depth = sum(1 for i in range(len(state)) if f"linear.{i}.weight" in state)
@@ -170,12 +119,10 @@ def encoding_permutation(dims: int, octaves: int) -> np.ndarray:
     return np.array([where[label] for label in ours], dtype=np.int64)
 
 
-def to_our_weights(state: Mapping[str, np.ndarray], where: str) -> tuple[Any, dict[str, np.ndarray]]:
+def to_our_weights(state: Mapping[str, np.ndarray], where: str) -> tuple[DeformArch, dict[str, np.ndarray]]:
     """``(arch, weights)`` of our network computing the reference state dict's function.
 
     Unknown or missing keys and other shapes raise :class:`ModelFormatError` naming them."""
-    from gscodec_shac.deform_arch import weight_shapes
-
     arch = reference_arch(state, where)
     shapes = weight_shapes(arch)
     expected = {reference_key(name): shape for name, shape in shapes}
@@ -206,19 +153,17 @@ def to_our_weights(state: Mapping[str, np.ndarray], where: str) -> tuple[Any, di
     return arch, weights
 
 
-def load_deformable3dgs(path: PathLike) -> Any:
-    """A Deformable-3DGS output folder as a :class:`~gscodec_shac.deform.DynamicModel`."""
-    from gscodec_shac.deform import DeformNetwork, DynamicModel
+def read_deformable3dgs(path: PathLike) -> tuple[GaussianCloud, DeformArch, dict[str, np.ndarray]]:
+    """``(canonical Gaussians, arch, weights in our names)`` of a Deformable-3DGS output folder
+    (:func:`gscodec_shac.deform.load_dynamic_model` builds the network from them)."""
     from gscodec_shac.io.ply import read_ply
 
     ply, pth, _ = iteration_files(path)
     arch, weights = to_our_weights(load_state_dict(pth), str(pth))
-    net = DeformNetwork(arch)
-    net.load_weights(weights, str(pth))
-    return DynamicModel(read_ply(ply), net)
+    return read_ply(ply), arch, weights
 
 
-def read_deformable3dgs_canonical(path: PathLike) -> Any:
+def read_deformable3dgs_canonical(path: PathLike) -> GaussianCloud:
     """The canonical Gaussians only (what a static tool such as ``rd`` codes), with a note."""
     from gscodec_shac.io.model_common import note
     from gscodec_shac.io.ply import read_ply

@@ -51,7 +51,7 @@ _SUPPORTED = (
 def detect_format(path: str | os.PathLike) -> str:
     """The format name of ``path`` (see the module table); unknown -> :class:`ModelFormatError`."""
     from gscodec_shac.io.compressed_ply import is_compressed_ply_header
-    from gscodec_shac.io.deformable3dgs import is_deformable_output
+    from gscodec_shac.io.deformable3dgs_files import is_deformable_output
     from gscodec_shac.io.sog import find_sog_meta
 
     path = Path(path)
