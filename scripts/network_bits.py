@@ -4,7 +4,9 @@ For each ``--bits`` value the model is encoded with the same rate point and SH s
 (``gscodec-shac encode MODEL out.gsc -r RATE_POINT --sh pca --er 0.96 --network-bits B``),
 decoded, and the decoded model rendered on the scene's test frames
 (``gscodec-shac render DEC frames/ --cameras transforms_test.json --resolution-scale S``),
-whose ``metrics.json`` gives the mean per-frame PSNR and SSIM against the ground truth.
+whose ``metrics.json`` gives the mean per-frame PSNR and SSIM against the ground truth; the
+8-bit PNG renders are also compared with the float16 variant's (what the quantisation changes
+in the picture, apart from how good the model is).
 The canonical Gaussians are coded identically in every variant, so the differences are the
 network's. Writes a JSON summary and prints one markdown row per variant.
 
@@ -45,6 +47,20 @@ def run_variant(model: Path, scene: Path, work: Path, bits: int, args: argparse.
             "seconds": time.perf_counter() - tic}
 
 
+def psnr_between_renders(a_dir: Path, b_dir: Path) -> tuple[float, float]:
+    """(mean, min) PSNR of ``b_dir``'s PNGs against ``a_dir``'s (same names; 8-bit images)."""
+    import cv2
+    import numpy as np
+
+    values = []
+    for a in sorted(a_dir.glob("*.png")):
+        x = cv2.imread(str(a)).astype(np.float64) / 255.0
+        y = cv2.imread(str(b_dir / a.name)).astype(np.float64) / 255.0
+        mse = float(np.mean((x - y) ** 2))
+        values.append(99.0 if mse == 0 else -10.0 * np.log10(mse))
+    return float(np.mean(values)), float(np.min(values))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("model", type=Path, help="dynamic model directory (or Deformable-3DGS output folder)")
@@ -60,14 +76,18 @@ def main() -> None:
     load = os.getloadavg()
     rows = [run_variant(args.model, args.scene, args.work, bits, args) for bits in args.bits]
     base = next((r for r in rows if r["bits"] == 16), rows[0])
-    print("| network | network chunk (bytes) | vs float16 | file (bytes) | test PSNR (dB) | vs float16 (dB) | SSIM |")
-    print("|---|---|---|---|---|---|---|")
+    print("| network | network chunk (bytes) | vs float16 | file (bytes) | test PSNR (dB) | vs float16 (dB) | SSIM "
+          "| renders vs float16's: mean / min PSNR (dB) |")
+    print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         r["psnr_vs_float16"] = r["psnr"] - base["psnr"]
         r["size_ratio_vs_float16"] = base["network_bytes"] / r["network_bytes"]
+        r["render_psnr_vs_float16"] = psnr_between_renders(args.work / f"b{base['bits']}_frames",
+                                                           args.work / f"b{r['bits']}_frames")
         name = "float16" if r["bits"] == 16 else f"{r['bits']}-bit per row"
+        mean, low = r["render_psnr_vs_float16"]
         print(f"| {name} | {r['network_bytes']:,} | {r['size_ratio_vs_float16']:.2f}x smaller | {r['file_bytes']:,} | "
-              f"{r['psnr']:.3f} | {r['psnr_vs_float16']:+.3f} | {r['ssim']:.4f} |")
+              f"{r['psnr']:.3f} | {r['psnr_vs_float16']:+.3f} | {r['ssim']:.4f} | {mean:.1f} / {low:.1f} |")
     summary = {"model": str(args.model), "scene": str(args.scene), "rate_point": args.rate_point, "er": args.er,
                "load_before": load, "load_after": os.getloadavg(), "rows": rows}
     print(f"load average before {load[0]:.1f}, after {summary['load_after'][0]:.1f}")
