@@ -23,6 +23,8 @@ identity when it is switched on after the static warm-up.
 A dynamic model on disk is a directory (:func:`save_dynamic_model`): ``point_cloud.ply``
 (canonical Gaussians, ordinary Inria PLY), ``deformation.npz`` (the weights by name) and
 ``deformation.json`` (``{"format": "gscodec-shac-deformation", "version": 1, "arch": ...}``).
+:func:`load_dynamic_model` also reads the output folder of the reference implementation
+(:mod:`gscodec_shac.io.deformable3dgs`), whose network this one expresses exactly.
 """
 
 from __future__ import annotations
