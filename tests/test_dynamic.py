@@ -517,3 +517,12 @@ def test_damaged_dynamic_streams_are_clean_errors(tmp_path: Path, dynamic_dir: P
                 kinds["error"] += 1
     assert kinds["error"] > 0
     decode(data)
+
+
+def test_network_bits_need_a_dynamic_model(tmp_path: Path, dynamic_dir: Path, capsys) -> None:
+    from gscodec_shac.cli import main
+
+    assert main(["encode", str(dynamic_dir / "point_cloud.ply"), str(tmp_path / "s.gsc"), "-r", "gsplat_png",
+                 "--network-bits", "8", "-q"]) == 2
+    assert "network bits apply to a dynamic model" in capsys.readouterr().err
+    assert not (tmp_path / "s.gsc").exists()
