@@ -23,6 +23,8 @@ identity when it is switched on after the static warm-up.
 A dynamic model on disk is a directory (:func:`save_dynamic_model`): ``point_cloud.ply``
 (canonical Gaussians, ordinary Inria PLY), ``deformation.npz`` (the weights by name) and
 ``deformation.json`` (``{"format": "gscodec-shac-deformation", "version": 1, "arch": ...}``).
+:func:`load_dynamic_model` also reads the output folder of the reference implementation
+(:mod:`gscodec_shac.io.deformable3dgs`), whose network this one expresses exactly.
 """
 
 from __future__ import annotations
@@ -38,7 +40,9 @@ import numpy as np
 import gscodec_shac.render  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads OpenMP)
 import torch  # noqa: E402
 
-from gscodec_shac.deform_arch import ARCH_FILE, MODEL_PLY, WEIGHTS_FILE, DeformArch, is_dynamic_model
+from gscodec_shac.deform_arch import (
+    ARCH_FILE, MODEL_PLY, WEIGHTS_FILE, DeformArch, is_dynamic_model, is_own_dynamic_model,
+)
 from gscodec_shac.errors import ModelFormatError
 from gscodec_shac.gaussians import GaussianCloud
 
@@ -194,12 +198,21 @@ def load_weights_npz(path: PathLike, max_bytes: int | None = None) -> dict[str, 
 
 
 def load_dynamic_model(path: PathLike) -> DynamicModel:
-    """Read a dynamic model directory (see the module docstring)."""
+    """Read a dynamic model directory (see the module docstring) or a Deformable-3DGS output folder
+    (:mod:`gscodec_shac.io.deformable3dgs`)."""
+    from gscodec_shac.io.deformable3dgs import read_deformable3dgs
+    from gscodec_shac.io.deformable3dgs_files import is_deformable_output
     from gscodec_shac.io.ply import read_ply
 
     path = Path(path)
-    if not is_dynamic_model(path):
-        raise ModelFormatError(f"{path}: not a dynamic model directory (no {ARCH_FILE})")
+    if not is_own_dynamic_model(path):
+        if is_deformable_output(path):
+            cloud, arch, weights = read_deformable3dgs(path)
+            net = DeformNetwork(arch)
+            net.load_weights(weights, f"{path}: deform.pth")
+            return DynamicModel(cloud, net)
+        raise ModelFormatError(f"{path}: not a dynamic model directory (no {ARCH_FILE}, and not a "
+                               "Deformable-3DGS output folder)")
     from gscodec_shac.deform_arch import weight_count
     from gscodec_shac.io.bounded import member_path
 

@@ -107,7 +107,27 @@ def weight_count(arch: DeformArch) -> int:
     return total
 
 
-def is_dynamic_model(path: str | os.PathLike) -> bool:
-    """True for a directory holding ``deformation.json`` (a dynamic model, :mod:`gscodec_shac.deform`)."""
+def is_own_dynamic_model(path: str | os.PathLike) -> bool:
+    """True for a directory holding ``deformation.json`` (our dynamic model, :mod:`gscodec_shac.deform`)."""
     path = Path(path)
     return path.is_dir() and (path / ARCH_FILE).is_file()
+
+
+def is_dynamic_model(path: str | os.PathLike) -> bool:
+    """True for a dynamic model directory: ours, or a Deformable-3DGS output folder
+    (:mod:`gscodec_shac.io.deformable3dgs`); :func:`gscodec_shac.deform.load_dynamic_model` reads both."""
+    from gscodec_shac.io.deformable3dgs_files import is_deformable_output
+
+    return is_own_dynamic_model(path) or is_deformable_output(path)
+
+
+def dynamic_model_files(path: str | os.PathLike) -> list[Path]:
+    """The files a dynamic model directory is made of (empty for anything else): what its size counts."""
+    from gscodec_shac.io.deformable3dgs_files import is_deformable_output, iteration_files
+
+    path = Path(path)
+    if is_own_dynamic_model(path):
+        return [f for f in (path / MODEL_PLY, path / WEIGHTS_FILE, path / ARCH_FILE) if f.is_file()]
+    if is_deformable_output(path):
+        return list(iteration_files(path)[:2])
+    return []

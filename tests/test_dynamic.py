@@ -323,20 +323,24 @@ def dynamic_dir(tmp_path: Path) -> Path:
     return save_dynamic_model(tmp_path / "model", DynamicModel(cloud, random_net(DeformArch(depth=4, width=32))))
 
 
-def test_gsc_round_trip_of_a_dynamic_model(tmp_path: Path, dynamic_dir: Path) -> None:
+@pytest.mark.parametrize("bits", [16, 8, 5, 4])
+def test_gsc_round_trip_of_a_dynamic_model(tmp_path: Path, dynamic_dir: Path, bits: int) -> None:
     from gscodec_shac.codec import decode_file, encode_file
     from gscodec_shac.codec.container import Bitstream
     from gscodec_shac.codec.header import read_header
 
-    summary = encode_file(dynamic_dir, tmp_path / "d.gsc", "gsplat_png")
+    summary = encode_file(dynamic_dir, tmp_path / "d.gsc", "gsplat_png", network_bits=bits)
     static = encode_file(dynamic_dir / "point_cloud.ply", tmp_path / "s.gsc", "gsplat_png")
     stream = Bitstream.read(tmp_path / "d.gsc")
-    assert stream.version == (2, 0) and "deformation" in stream.features
+    quantised = bits < 16
+    assert stream.version == ((2, 1) if quantised else (2, 0))
+    assert stream.features == ({"deformation", "deformation_quantised"} if quantised else {"deformation"})
     view = read_header(stream)
     assert view.deformation is not None and view.deformation.arch == DeformArch(depth=4, width=32)
+    assert (view.deformation.dtype, view.deformation.bits) == (("uint8", bits) if quantised else ("float16", 16))
     net_bytes = view.chunk_bytes["deformation"]
     assert 0 < net_bytes <= 2 * view.deformation.weights + 64
-    # the network counts in the rate: the rest is the static stream (its header deflated in format 2.0)
+    # the network counts in the rate: the rest is the static stream (its header deflated in format 2.x)
     assert summary["bytes"] == (tmp_path / "d.gsc").stat().st_size
     assert 0.9 * static["bytes"] < summary["bytes"] - net_bytes <= static["bytes"]
     out = decode_file(tmp_path / "d.gsc", tmp_path / "decoded")
@@ -351,8 +355,34 @@ def test_gsc_round_trip_of_a_dynamic_model(tmp_path: Path, dynamic_dir: Path) ->
         np.testing.assert_array_equal(getattr(back.cloud, name), getattr(static_cloud, name))
     for key, value in original.net.weights().items():
         got = back.net.weights()[key]
-        np.testing.assert_allclose(got, value, rtol=1e-3, atol=1e-4)  # float16
-        np.testing.assert_array_equal(got, value.astype(np.float16).astype(np.float32))
+        if not quantised or value.ndim == 1:  # float16 (biases stay float16 in the quantised form)
+            np.testing.assert_array_equal(got, value.astype(np.float16).astype(np.float32))
+            continue
+        # per row: within half a step of 2^bits - 1 steps over the row's range (+ float16 rounding of lo, step)
+        span = value.max(axis=1, keepdims=True) - value.min(axis=1, keepdims=True)
+        assert np.all(np.abs(got - value) <= 0.5 * span / (2 ** bits - 1) * 1.01 + 1e-3 * np.abs(value).max()), key
+        assert len(np.unique(got[0])) <= 2 ** bits
+
+
+def test_quantised_network_is_smaller_and_its_errors_are_bounded(dynamic_dir: Path) -> None:
+    """The coded chunk shrinks with the bits, and the decoded weights' worst error grows as the step."""
+    from gscodec_shac.codec.container import Bitstream
+    from gscodec_shac.codec.deformation import add_deformation, decode_weights, raw_size
+    import zlib
+
+    model = load_dynamic_model(dynamic_dir)
+    weights = model.net.weights()
+    sizes, errors = {}, {}
+    for bits in (16, 8, 6, 4):
+        stream = Bitstream()
+        sizes[bits] = add_deformation(stream, model.arch, weights, bits)
+        raw = zlib.decompress(stream.chunk("deformation").data)
+        dtype = stream.header["deformation"]["dtype"]
+        assert len(raw) == raw_size(model.arch, dtype, bits)
+        back = decode_weights(raw, model.arch, dtype, bits)
+        errors[bits] = max(float(np.abs(back[k] - v).max()) for k, v in weights.items() if v.ndim == 2)
+    assert sizes[16] > sizes[8] > sizes[6] > sizes[4]
+    assert errors[16] < errors[8] < errors[6] < errors[4]
 
 
 def test_old_decoder_refuses_a_dynamic_stream(tmp_path: Path, dynamic_dir: Path, monkeypatch) -> None:
@@ -364,6 +394,19 @@ def test_old_decoder_refuses_a_dynamic_stream(tmp_path: Path, dynamic_dir: Path,
     monkeypatch.delitem(container.FEATURES, "deformation")
     with pytest.raises(BitstreamError, match="needs deformation.*update gscodec-shac"):
         container.Bitstream.read(tmp_path / "d.gsc")
+
+
+def test_a_2_0_decoder_refuses_a_quantised_network(tmp_path: Path, dynamic_dir: Path, monkeypatch) -> None:
+    """The release that wrote float16 networks (format 2.0) knows 'deformation' but not the quantised form."""
+    from gscodec_shac.codec import container, encode_file
+    from gscodec_shac.errors import BitstreamError
+
+    encode_file(dynamic_dir, tmp_path / "q.gsc", "gsplat_png", network_bits=8)
+    encode_file(dynamic_dir, tmp_path / "f.gsc", "gsplat_png", network_bits=16)
+    monkeypatch.delitem(container.FEATURES, "deformation_quantised")
+    with pytest.raises(BitstreamError, match="needs deformation_quantised, which this version"):
+        container.Bitstream.read(tmp_path / "q.gsc")
+    assert container.Bitstream.read(tmp_path / "f.gsc").version == (2, 0)
 
 
 def _corrupt(stream, edit) -> None:
@@ -380,17 +423,23 @@ def _corrupt(stream, edit) -> None:
     (lambda s: s.header["deformation"]["arch"].update(width=4096), "too large"),
     (lambda s: s.header["deformation"]["arch"].update(depth="8"), "positive integer"),
     (lambda s: s.header["deformation"].update(dtype="float64"), "deformation.dtype"),
+    (lambda s: s.header["deformation"].update(dtype="uint8" if "bits" not in s.header["deformation"] else "float16"),
+     "deformation.dtype.*come together"),
     (lambda s: s.header.pop("deformation"), "come together"),
     (lambda s: s.features.discard("deformation") or s.header.pop("deformation"), "belongs to no attribute"),
     (lambda s: s.chunk("deformation").meta.update(raw_size=10), "raw_size"),
     (lambda s: s.header["deformation"]["arch"].update(width=33), "raw_size"),
 ])
-def test_header_validates_the_deformation_chunk(tmp_path: Path, dynamic_dir: Path, edit, message: str) -> None:
+@pytest.mark.parametrize("bits", [16, 8])
+def test_header_validates_the_deformation_chunk(tmp_path: Path, dynamic_dir: Path, edit, message: str,
+                                                bits: int) -> None:
     from gscodec_shac.codec import encode_file
     from gscodec_shac.codec.container import Bitstream
     from gscodec_shac.errors import BitstreamError
 
-    encode_file(dynamic_dir, tmp_path / "d.gsc", "gsplat_png")
+    encode_file(dynamic_dir, tmp_path / "d.gsc", "gsplat_png", network_bits=bits)
+    if bits < 16 and message == "belongs to no attribute":
+        message = "'deformation_quantised' feature needs a deformation entry"
     stream = Bitstream.read(tmp_path / "d.gsc")
     with pytest.raises(BitstreamError, match=message):
         _corrupt(stream, edit)
@@ -468,3 +517,12 @@ def test_damaged_dynamic_streams_are_clean_errors(tmp_path: Path, dynamic_dir: P
                 kinds["error"] += 1
     assert kinds["error"] > 0
     decode(data)
+
+
+def test_network_bits_need_a_dynamic_model(tmp_path: Path, dynamic_dir: Path, capsys) -> None:
+    from gscodec_shac.cli import main
+
+    assert main(["encode", str(dynamic_dir / "point_cloud.ply"), str(tmp_path / "s.gsc"), "-r", "gsplat_png",
+                 "--network-bits", "8", "-q"]) == 2
+    assert "network bits apply to a dynamic model" in capsys.readouterr().err
+    assert not (tmp_path / "s.gsc").exists()

@@ -13,7 +13,8 @@ Layout (all integers little-endian)::
 
 Versions. A stream is written with the oldest version that can hold it: 1.0 when it
 uses no optional feature (so files that 1.0 decoders read stay byte-identical), else
-2.0, whose header is deflated (zlib; the header length and CRC are of the stored bytes)
+the newest version any of its features needs (:data:`FEATURE_VERSIONS`: 2.0, or 2.1 for a
+quantised deformation network). Version 2 headers are deflated (zlib; the header length and CRC are of the stored bytes)
 and lists in ``header["features"]`` the sorted names of the features the stream needs
 (see :data:`FEATURES`). A decoder refuses a feature it does not know, naming it, instead
 of decoding the stream wrongly.
@@ -49,13 +50,17 @@ from gscodec_shac.limits import MAX_HEADER_BYTES, MAX_NESTING, json_nesting
 MAGIC = b"\x89GSC\r\n\x1a\n"
 #: The newest format this code writes and reads; it reads every older major too.
 FORMAT_MAJOR = 2
-FORMAT_MINOR = 0
+FORMAT_MINOR = 1
 #: What a version-2 stream may ask for in ``header["features"]``: name -> what it adds.
 FEATURES: dict[str, str] = {
     "positions_set": "positions coded as a Morton-sorted set; the grid order follows from them (codec/positions.py)",
     "deformation": "a dynamic model: the canonical Gaussians plus a deformation network in chunk 'deformation' "
                    "(codec/deformation.py); it decodes to a model directory",
+    "deformation_quantised": "the deformation network's weight matrices quantised per row to at most 8 bits "
+                             "(codec/deformation.py)",
 }
+#: The version a stream needing the feature is written as (2.0 unless listed).
+FEATURE_VERSIONS: dict[str, tuple[int, int]] = {"deformation_quantised": (2, 1)}
 _PREAMBLE = struct.Struct("<8sHHII")
 PREAMBLE_SIZE = _PREAMBLE.size  # 20
 _MAX_CHUNKS = 4096
@@ -111,8 +116,9 @@ class Bitstream:
         self.features.add(feature)
 
     def write_version(self) -> tuple[int, int]:
-        """The oldest version that holds this stream: 1.0 without optional features, else 2.0."""
-        return (FORMAT_MAJOR, FORMAT_MINOR) if self.features else (1, 0)
+        """The oldest version that holds this stream: 1.0 without optional features, else the newest
+        its features need (2.0 or 2.1)."""
+        return max((FEATURE_VERSIONS.get(f, (2, 0)) for f in self.features), default=(1, 0))
 
     def header_bytes(self) -> bytes:
         header = dict(self.header)

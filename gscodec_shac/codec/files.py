@@ -30,6 +30,7 @@ def encode_file(
     preset: str | None = None,
     progress: bool = False,
     choose_sh: Callable[[Any], tuple[str, dict[str, Any]]] | None = None,
+    network_bits: int | None = None,
     **stage_params: Any,
 ) -> dict[str, Any]:
     """Any model file ``read_model`` reads -> ``.gsc`` (written atomically); returns a summary
@@ -38,7 +39,9 @@ def encode_file(
     ``sh`` picks the SH stage (default: the rate point's), ``stage_params`` its
     parameters (e.g. ``energy_retention=0.99``); ``preset`` sets the lossy
     codecs' speed preset (x265's ``preset`` option). ``choose_sh``, when given, picks
-    ``(stage, params)`` from the model read (the default encode, :mod:`.defaults`).
+    ``(stage, params)`` from the model read (the default encode, :mod:`.defaults`);
+    ``network_bits`` how a dynamic model's network is stored (16: float16, 2..8: quantised;
+    default 8, :mod:`.deformation`).
     """
     from gscodec_shac.deform_arch import is_dynamic_model
     from gscodec_shac.io.models import read_model
@@ -53,6 +56,8 @@ def encode_file(
         dynamic = load_dynamic_model(in_ply)
         cloud, notes = dynamic.cloud, []
     else:
+        if network_bits is not None:
+            raise GscodecError(f"{in_ply}: network bits apply to a dynamic model, this is a static one")
         cloud, notes = read_model(in_ply)
     if choose_sh is not None:
         sh, chosen = choose_sh(cloud)
@@ -62,7 +67,10 @@ def encode_file(
                       codec_options={"preset": preset} if preset else None, progress=progress)
     stream = encoder.encode(cloud)
     if dynamic is not None:
-        add_deformation(stream, dynamic.arch, dynamic.net.weights())
+        from gscodec_shac.codec.deformation import DEFAULT_BITS
+
+        add_deformation(stream, dynamic.arch, dynamic.net.weights(),
+                        DEFAULT_BITS if network_bits is None else network_bits)
     with inputs_protected(in_ply):
         size = stream.write(out_gsc)
     return {

@@ -16,8 +16,10 @@ got -1``). What is checked, before anything is decoded or allocated:
 * zlib chunks (``grid_mask``, ``sh_state``): the declared inflated size against its
   limit and against what deflate can produce from the stored bytes (at most 1032:1);
 * dynamic models (feature ``deformation``): the ``deformation`` header entry (architecture
-  within :mod:`gscodec_shac.deform_arch`'s bounds, dtype float16) comes with the feature and
-  the zlib chunk ``deformation``, whose inflated size must be 2 bytes per network weight;
+  within :mod:`gscodec_shac.deform_arch`'s bounds, dtype float16, or uint8 with 2..8 bits and
+  the feature ``deformation_quantised``) comes with the feature and the zlib chunk
+  ``deformation``, whose inflated size must be what that architecture and dtype need
+  (:func:`gscodec_shac.codec.deformation.raw_size`);
 * the peak memory a decode needs (:meth:`StreamHeader.peak_memory`) is the decoder's to
   compare with :func:`gscodec_shac.limits.memory_budget` before the first allocation.
 
@@ -124,6 +126,8 @@ class DeformationEntry:
     arch: DeformArch
     dtype: str
     weights: int
+    #: Bits per quantised weight (``uint8``), 16 for ``float16``.
+    bits: int = 16
 
 
 @dataclass(frozen=True)
@@ -188,8 +192,8 @@ class StreamHeader:
         values = n * self.channels * (2 + 4 + 8)
         sh = n * (ac + 3) * (8 + 8 + 4) if self.sh else 0
         state = 6 * sum(self.zlib_sizes.values())
-        if self.deformation is not None:  # float16 -> float32 weights and the torch network
-            state += 10 * self.deformation.weights
+        if self.deformation is not None:  # float16 -> float32 weights and the torch network (+ unpacked bits)
+            state += (10 if self.deformation.dtype == "float16" else 20) * self.deformation.weights
         position_set = 48 * n if any(e.coding == "set" for e in self.attributes.values()) else 0
         return planes + codec + values + sh + state + position_set + 2 * self.decoded_bytes()
 
@@ -214,7 +218,7 @@ def read_header(stream: Bitstream) -> StreamHeader:
         raise HEADER.error("grid.padding", "set-coded positions, the zorder padding and the positions_set "
                            "feature come together")
     chunks = _chunk_plans(stream, attributes, shape, len(codecs))
-    deformation = _deformation(header.get("deformation"), "deformation" in stream.features)
+    deformation = _deformation(header.get("deformation"), stream.features)
     zlib_sizes = _zlib_chunks(stream, attributes, sh, padding, shape[0] * shape[1], deformation)
 
     prune = HEADER.mapping(header.get("prune"), "prune")
@@ -259,7 +263,7 @@ def read_deformation(stream: Bitstream, view: StreamHeader) -> dict[str, np.ndar
     if view.deformation is None:
         raise BitstreamError("corrupt .gsc file: the stream has no deformation network")
     raw = inflate(stream.chunk("deformation"), view.zlib_sizes["deformation"])
-    weights = decode_weights(raw, view.deformation.arch)
+    weights = decode_weights(raw, view.deformation.arch, view.deformation.dtype, view.deformation.bits)
     bad = [name for name, value in weights.items() if not np.all(np.isfinite(value))]
     if bad:
         raise BitstreamError(f"corrupt .gsc file: chunk 'deformation': weight {bad[0]} holds NaN or infinity")
@@ -471,21 +475,29 @@ def _chunk_plan(meta: dict, name: str, attribute: AttributeEntry, shape: tuple[i
     return ChunkPlan(name, attribute.name, start, stop, part, bits, codec, qp)
 
 
-def _deformation(value: Any, required: bool) -> DeformationEntry | None:
-    """The ``deformation`` entry: present exactly when the stream needs the ``deformation`` feature."""
-    if (value is not None) != required:
+def _deformation(value: Any, features: set[str]) -> DeformationEntry | None:
+    """The ``deformation`` entry: present exactly when the stream needs the ``deformation`` feature;
+    quantised (uint8) exactly when it also needs ``deformation_quantised``."""
+    from gscodec_shac.codec.deformation import DTYPES, MAX_BITS, MIN_BITS, QUANTISED_FEATURE
+
+    if (value is not None) != ("deformation" in features):
         raise HEADER.error("deformation", "the deformation entry and the 'deformation' feature come together")
     if value is None:
+        if QUANTISED_FEATURE in features:
+            raise HEADER.error("deformation", f"the {QUANTISED_FEATURE!r} feature needs a deformation entry")
         return None
     entry = HEADER.mapping(value, "deformation", optional=False)
-    dtype = HEADER.choice(entry.get("dtype"), ("float16",), "deformation.dtype")
+    dtype = HEADER.choice(entry.get("dtype"), DTYPES, "deformation.dtype")
+    if (dtype == "uint8") != (QUANTISED_FEATURE in features):
+        raise HEADER.error("deformation.dtype", f"dtype uint8 and the {QUANTISED_FEATURE!r} feature come together")
+    bits = HEADER.integer(entry.get("bits"), "deformation.bits", MIN_BITS, MAX_BITS) if dtype == "uint8" else 16
     try:
         arch = DeformArch.from_dict(entry.get("arch"))
     except GscodecError as exc:
         raise HEADER.error("deformation.arch", str(exc)) from None
     except TypeError as exc:
         raise HEADER.error("deformation.arch", f"malformed ({exc})") from None
-    return DeformationEntry(arch, dtype, weight_count(arch))
+    return DeformationEntry(arch, dtype, weight_count(arch), bits)
 
 
 def _zlib_chunks(stream: Bitstream, attributes: dict[str, AttributeEntry], sh: ShEntry | None, padding: str,
@@ -497,7 +509,9 @@ def _zlib_chunks(stream: Bitstream, attributes: dict[str, AttributeEntry], sh: S
     if sh is not None:
         expected["sh_state"] = None
     if deformation is not None:
-        expected["deformation"] = 2 * deformation.weights
+        from gscodec_shac.codec.deformation import raw_size
+
+        expected["deformation"] = raw_size(deformation.arch, deformation.dtype, deformation.bits)
     listed = {name for entry in attributes.values() for name in entry.chunks}
     named = {c.name for c in stream.chunks}
     stray = sorted(named - listed - set(expected))
@@ -556,7 +570,8 @@ def describe(view: StreamHeader) -> dict[str, Any]:
         "rate_point": view.rate_point,
         "target": view.target,
         "deformation": ({"arch": view.deformation.arch.to_dict(), "weights": view.deformation.weights,
-                         "dtype": view.deformation.dtype, "bytes": view.chunk_bytes.get("deformation", 0)}
+                         "dtype": view.deformation.dtype, "bits": view.deformation.bits,
+                         "bytes": view.chunk_bytes.get("deformation", 0)}
                         if view.deformation else None),
         "bits_per_gaussian": 8.0 * view.total_bytes / per,
         "bits_per_gaussian_of": "input" if view.input_gaussians is not None else "decoded",

@@ -40,10 +40,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                   "gscodec-shac encode scene.ply scene.gsc --target-size 2.5MB"],
     )
     parser.add_argument("input", metavar="IN", help="input model: Inria .ply, .compressed.ply, .spz, .splat, .sog, "
-                        "SOG meta.json (or its folder), gsplat checkpoint .pt, a .gsc (decoded and re-encoded), or a dynamic model "
-                        "directory "
-                        "(its canonical Gaussians are coded as any model, the deformation network as one float16 "
-                        "chunk)")
+                        "SOG meta.json (or its folder), gsplat checkpoint .pt, a .gsc (decoded and re-encoded), a dynamic "
+                        "model directory or a Deformable-3DGS output folder (its canonical Gaussians are coded as any "
+                        "model, the deformation network as one chunk, see --network-bits)")
     parser.add_argument("output", metavar="OUT.gsc", help="output .gsc (written atomically)")
     parser.add_argument("--rate-point", "-r", metavar="SET:POINT",
                         help="e.g. paper_table3:rp2 (the paper's), shac_ladder:rp3, my.yaml:fast (default: "
@@ -78,6 +77,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--sort", choices=("plas", "morton", "random", "none"), help="grid sorting (default: the rate point's)")
     parser.add_argument("--preset", help="speed preset of the lossy codec (x265: ultrafast ... slow ... placebo)")
     parser.add_argument("--seed", type=int, help="seed of the sorting and of the vq k-means (default: the rate point's)")
+    parser.add_argument("--network-bits", type=int, choices=(16, 8, 7, 6, 5, 4, 3, 2), metavar="BITS",
+                        help="a dynamic model's deformation network: 16 stores float16 weights, 2-8 quantises each "
+                        "weight matrix per row to that many bits (default 8; docs/dynamic.md)")
     add_quiet(parser)
     add_json(parser)
     add_force(parser)
@@ -120,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
     summary = encode_file(
         args.input, args.output, point, sh=stage, sort=args.sort, seed=args.seed, preset=args.preset,
         progress=not args.quiet and sys.stderr.isatty(), choose_sh=choose_default_sh if automatic else None,
-        **params,
+        network_bits=args.network_bits, **params,
     )
     notes = list(summary["notes"])
     if summary.get("sh_degree") == 0 and args.sh not in (None, "none"):
@@ -179,7 +181,8 @@ def _run_to_target(args: argparse.Namespace) -> int:
     from gscodec_shac.errors import GscodecError
     from gscodec_shac.io.models import report_notes
 
-    fixed = [flag for flag, value in (("--sh", args.sh), ("--sort", args.sort), ("--seed", args.seed)) if value is not None]
+    fixed = [flag for flag, value in (("--sh", args.sh), ("--sort", args.sort), ("--seed", args.seed),
+                                      ("--network-bits", args.network_bits)) if value is not None]
     fixed += ["--" + f.replace("_", "-") for f in stage_options() if getattr(args, f) is not None]
     if fixed:
         raise GscodecError(f"{', '.join(fixed)} cannot be combined with a target: the rate controller chooses the "

@@ -120,7 +120,9 @@ def _compare(args: argparse.Namespace) -> int:
 
 def _deformation_line(info: dict[str, Any]) -> str:
     arch = info["arch"]
-    stored = f"{info['bytes']:,} bytes ({info.get('dtype', 'float16')})" if "bytes" in info else \
+    dtype = info.get("dtype", "float16")
+    form = f"{info['bits']}-bit per-row quantised" if dtype == "uint8" else dtype
+    stored = f"{info['bytes']:,} bytes ({form})" if "bytes" in info else \
         f"{info['float32_bytes']:,} bytes as float32"
     return (f"deformation       MLP {arch['depth']}x{arch['width']}"
             f"{' + time net' if arch['time_net'] else ''}, {info['weights']:,} weights, {stored}")

@@ -15,6 +15,8 @@ format             recognised by                                               w
                    of 32)
 ``gsc``            the ``.gsc`` magic (decoded; a dynamic stream gives its      no (encode)
                    canonical Gaussians)
+``deformable3dgs`` a folder holding ``point_cloud/`` and ``deform/`` (or one    no
+                   of their ``iteration_N``): the canonical Gaussians only
 =================  ==========================================================  =========
 
 A file without any of these signatures is handed to the reader its extension names,
@@ -38,7 +40,7 @@ from gscodec_shac.errors import ModelFormatError
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.io.model_common import FormatNote
 
-READ_FORMATS = ("ply", "compressed-ply", "spz", "splat", "sog", "gsplat", "gsc")
+READ_FORMATS = ("ply", "compressed-ply", "spz", "splat", "sog", "gsplat", "gsc", "deformable3dgs")
 #: Output extension -> format.
 WRITE_EXTENSIONS = {".ply": "ply", ".spz": "spz", ".splat": "splat", ".sog": "sog", ".pt": "gsplat", ".pth": "gsplat"}
 #: A name ending like this is written as PlayCanvas's compressed PLY (its suffix alone is ``.ply``).
@@ -53,6 +55,7 @@ def detect_format(path: str | os.PathLike) -> str:
     """The format name of ``path`` (see the module table); unknown -> :class:`ModelFormatError`."""
     from gscodec_shac.io.bounded import BoundedZip
     from gscodec_shac.io.compressed_ply import is_compressed_ply_header
+    from gscodec_shac.io.deformable3dgs_files import is_deformable_output
     from gscodec_shac.io.sog import find_sog_meta
 
     path = Path(path)
@@ -61,6 +64,8 @@ def detect_format(path: str | os.PathLike) -> str:
     if path.is_dir():
         if find_sog_meta(path) is not None:
             return "sog"
+        if is_deformable_output(path):
+            return "deformable3dgs"
         raise ModelFormatError(f"{path}: is a directory without a SOG meta.json; supported: {_SUPPORTED}")
     from gscodec_shac.codec.container import MAGIC
 
@@ -120,9 +125,14 @@ def report_notes(notes: list[str], stream: TextIO | None = None) -> None:
 
 
 def model_bytes(path: str | os.PathLike) -> int:
-    """Bytes a model occupies: the file, or for a SOG ``meta.json`` or folder, it and its images."""
+    """Bytes a model occupies: the file, or for a SOG ``meta.json`` or folder, it and its images;
+    for a dynamic model directory, its canonical PLY and network files."""
     path = Path(path)
+    from gscodec_shac.deform_arch import dynamic_model_files
     from gscodec_shac.io.sog import find_sog_meta, sog_files
+
+    if path.is_dir() and dynamic_model_files(path):
+        return sum(f.stat().st_size for f in dynamic_model_files(path))
 
     meta = find_sog_meta(path)
     if meta is None:
@@ -146,14 +156,15 @@ def _collecting(call: Callable[[], Any]) -> tuple[Any, list[str]]:
 
 def _readers() -> dict[str, Callable[[Any], GaussianCloud]]:
     from gscodec_shac.io.compressed_ply import read_compressed_ply
+    from gscodec_shac.io.deformable3dgs import read_deformable3dgs_canonical
     from gscodec_shac.io.gsplat_ckpt import read_gsplat_checkpoint
-    from gscodec_shac.io.ply import read_ply
     from gscodec_shac.io.sog import read_sog
     from gscodec_shac.io.splat import read_splat
     from gscodec_shac.io.spz import read_spz
 
     return {"ply": _read_ply_clamped, "compressed-ply": read_compressed_ply, "spz": read_spz, "splat": read_splat,
-            "sog": read_sog, "gsplat": read_gsplat_checkpoint, "gsc": _read_gsc}
+            "sog": read_sog, "gsplat": read_gsplat_checkpoint, "gsc": _read_gsc,
+            "deformable3dgs": read_deformable3dgs_canonical}
 
 
 def _read_ply_clamped(path: str | os.PathLike) -> GaussianCloud:
