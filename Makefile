@@ -11,7 +11,7 @@ STAMP  := $(VENV)/.installed-stamp
 TEST_STAMP := $(VENV)/.installed-test-stamp
 DEMO_OUT ?= demo-output
 
-.PHONY: demo test venv clean
+.PHONY: demo test test-fast venv clean
 
 venv: $(STAMP)
 
@@ -30,8 +30,14 @@ $(TEST_STAMP): $(STAMP)
 	$(BIN)/pip install --quiet -e ".[dev,distributed,gsplat]"
 	touch $(TEST_STAMP)
 
+# The full suite (CI). -rs lists why each skipped test was skipped.
 test: $(TEST_STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -rs
+
+# The quick tier: everything but the tests marked slow (tests/slow_tests.txt, applied in
+# tests/conftest.py; regenerate the list with scripts/slow_tests.py from measured durations).
+test-fast: $(TEST_STAMP)
+	$(BIN)/python -m pytest -q -rs -m "not slow"
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache
