@@ -3,9 +3,10 @@
 tqdm redraws its bar in place with carriage returns, many times a second. In a log file
 that is one endless line (or nothing readable until the end). :func:`plain_progress_lines`
 puts a filter in front of ``sys.stderr`` while a command runs, when stderr is not a
-terminal: each bar's latest state is written as an ordinary line at most every
-``$GSCODEC_PROGRESS_INTERVAL`` seconds (default 30), plus its final state when it closes;
-erased bars (``leave=False``) and every other output pass through unchanged. The filter
+terminal: a bar running longer than ``$GSCODEC_PROGRESS_INTERVAL`` seconds (default 30)
+writes its latest state as an ordinary line every interval, and then its final state when
+it closes; shorter bars write nothing (the log looks as it did), and every other output
+passes through unchanged. The filter
 answers ``isatty()`` with True, so commands that show progress only on a terminal (see
 :func:`gscodec_shac.commands._options.resolve_args`) show it in logs too; no tqdm call site
 needs to change. ``-q`` still silences a command; ``GSCODEC_PROGRESS_INTERVAL=off`` keeps
@@ -34,9 +35,10 @@ class PlainProgressStream:
         self._stream = stream
         self._interval = interval
         self._clock = clock
-        self._last = -math.inf  # when a status line was last written
+        self._since = math.nan  # when the current bar's first state (or its last line) came
         self._pending: str | None = None  # the newest status not yet written
         self._shown: str | None = None  # the status just written, awaiting tqdm's closing newline
+        self._printed = False  # the current bar has written a line (so its final state follows)
 
     def write(self, text: str) -> int:
         head, *statuses = text.split("\r")
@@ -49,25 +51,32 @@ class PlainProgressStream:
         if not text:
             return
         if text.startswith("\n") and (self._pending is not None or self._shown is not None):
-            if self._pending is not None:  # a bar closing with leave=True: its final state
+            if self._pending is not None and self._printed:  # a long bar closing (leave=True): final state
                 self._stream.write(self._pending + "\n")
-            text = text[1:]  # the newline ending the status line, already written
-        self._pending = self._shown = None
+            text = text[1:]  # the newline ending the status line
+        self._reset()
         self._stream.write(text)
+
+    def _reset(self) -> None:
+        self._pending = self._shown = None
+        self._printed = False
+        self._since = math.nan
 
     def _status(self, status: str) -> None:
         line = status.rstrip(" ")
         if "\n" in line:  # not a redraw: ordinary text after a carriage return
-            self._pending = self._shown = None
+            self._reset()
             self._stream.write(line)
             return
         if not line:  # a bar erased (leave=False)
-            self._pending = self._shown = None
+            self._reset()
             return
         now = self._clock()
-        if now - self._last >= self._interval:
+        if math.isnan(self._since):
+            self._since = now
+        if now - self._since >= self._interval:
             self._stream.write(line + "\n")
-            self._last, self._pending, self._shown = now, None, line
+            self._since, self._pending, self._shown, self._printed = now, None, line, True
         else:
             self._pending = line
 

@@ -25,26 +25,29 @@ def test_redraws_become_throttled_lines_and_the_final_state_is_kept():
     stream = PlainProgressStream(out, interval=30.0, clock=clock)
     bar = tqdm(total=100, desc="encode", file=stream, mininterval=0, miniters=1, ncols=60)
     for step in range(100):
-        clock.now = step  # one second per step: lines at 0, 30, 60 and 90 s
+        clock.now = step  # one second per step: lines at 30, 60 and 90 s and the final state
         bar.update(1)
     bar.close()
     print("encoded", file=stream)
     lines = out.getvalue().split("\n")
     assert "\r" not in out.getvalue()
     progress = [line for line in lines if line.startswith("encode:")]
-    assert [line.split("|")[0].split(":")[1].strip() for line in progress] == ["0%", "31%", "61%", "91%", "100%"]
+    assert [line.split("|")[0].split(":")[1].strip() for line in progress] == ["31%", "61%", "91%", "100%"]
     assert lines[-2:] == ["encoded", ""]  # ordinary output unchanged, no blank line after the final state
 
 
-def test_erased_bars_leave_nothing_and_plain_text_passes_through():
+def test_short_bars_leave_nothing_and_plain_text_passes_through():
     out = io.StringIO()
-    stream = PlainProgressStream(out, interval=1e9, clock=Clock())
+    stream = PlainProgressStream(out, interval=30.0, clock=Clock())
     stream.write("warning: one\n")
-    bar = tqdm(total=3, desc="render", file=stream, leave=False, mininterval=0, miniters=1)
-    bar.update(3)
-    bar.close()
-    stream.write("done\n")
-    assert out.getvalue().splitlines() == ["warning: one", "render:   0%|          | 0/3 [00:00<?, ?it/s]", "done"]
+    for leave in (True, False):  # shorter than the interval: no line, kept or erased
+        bar = tqdm(total=3, desc="render", file=stream, leave=leave, mininterval=0, miniters=1)
+        bar.update(3)
+        bar.close()
+    bar = tqdm(total=3, desc="sorting", file=stream, mininterval=0, miniters=1)
+    bar.update(1)
+    stream.write("error: stopped half way\n")  # an error during a bar: the bar's state is dropped
+    assert out.getvalue().splitlines() == ["warning: one", "error: stopped half way"]
 
 
 def test_cli_writes_plain_progress_lines_to_a_log(tmp_path):
