@@ -98,7 +98,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     debug = bool(args.debug or os.environ.get(DEBUG_ENV, "") not in ("", "0"))
     try:
-        with _signals_as_exceptions(), _warnings_as_lines(debug), plain_progress_lines():
+        with _signals_as_exceptions(), _warnings_as_lines(debug), plain_progress_lines(args.command):
             args = resolve_args(args)
             if not getattr(args, "quiet", True):
                 kernels.announce(args.command)

@@ -24,6 +24,8 @@ import time
 from typing import Callable, Iterator, TextIO
 
 INTERVAL_ENV = "GSCODEC_PROGRESS_INTERVAL"
+#: Commands that write their own log lines when stderr is not a terminal (JSON every 100 steps).
+OWN_LOG_LINES = frozenset({"train", "train-dynamic"})
 DEFAULT_INTERVAL = 30.0
 
 
@@ -110,11 +112,13 @@ def _is_terminal(stream: TextIO) -> bool:
 
 
 @contextlib.contextmanager
-def plain_progress_lines() -> Iterator[None]:
-    """While active, progress bars on a non-terminal stderr become periodic plain lines."""
+def plain_progress_lines(command: str | None = None) -> Iterator[None]:
+    """While active, progress bars on a non-terminal stderr become periodic plain lines
+    (not for ``command``\ s in :data:`OWN_LOG_LINES`, which log in their own way)."""
     original = sys.stderr
     interval = interval_from_env()
-    if original is None or original is not sys.__stderr__ or interval is None or _is_terminal(original):
+    if (original is None or original is not sys.__stderr__ or interval is None or _is_terminal(original)
+            or command in OWN_LOG_LINES):
         yield
         return
     sys.stderr = PlainProgressStream(original, interval)  # type: ignore[assignment]

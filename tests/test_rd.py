@@ -263,7 +263,8 @@ def test_demo_command_end_to_end(tmp_path, capsys):
     assert main(["demo", "--out", str(out), "-n", "1000", "--workers", "1", "--preset", "ultrafast", "-q"]) == 0
     text = capsys.readouterr().out
     assert "shac-pca-er0.97 vs baseline" in text and "demo finished" in text
-    for name in ("results.csv", "results.json", "bd_table.md", "bd_table.json", "report/rd_synthetic.png"):
+    for name in ("results.csv", "results.json", "bd_table.md", "bd_table.json", "report/rd_synthetic.png",
+                 "report/report.html", "renders/synthetic/uncompressed.png", "renders/synthetic/ground_truth.png"):
         assert (out / name).is_file(), name
     rows = load_results(out)
     fixed = [r for r in rows if r["method"] != "shac-auto"]
