@@ -114,7 +114,7 @@ def _is_terminal(stream: TextIO) -> bool:
 @contextlib.contextmanager
 def plain_progress_lines(command: str | None = None) -> Iterator[None]:
     """While active, progress bars on a non-terminal stderr become periodic plain lines
-    (not for ``command``\ s in :data:`OWN_LOG_LINES`, which log in their own way)."""
+    (not for the commands in :data:`OWN_LOG_LINES`, which log in their own way)."""
     original = sys.stderr
     interval = interval_from_env()
     if (original is None or original is not sys.__stderr__ or interval is None or _is_terminal(original)
