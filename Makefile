@@ -3,6 +3,7 @@
 # torch 2.13.0 installed *before* the project (a plain `torch` requirement would
 # pull GBs of CUDA packages), then the project; `make test` adds the test and
 # `distributed` (Ray) and `gsplat` (the real gsplat package for the drop-in's test) extras.
+# Installing also compiles the codec's and the renderer's numba kernels (about a minute, once).
 
 VENV   ?= .venv
 PYTHON ?= python3
@@ -20,6 +21,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet torch==2.13.0
 	$(BIN)/pip install --quiet -e ".[dev]"
+	$(BIN)/python -m gscodec_shac.kernels --compile  # numba kernels compiled once, into numba's cache
 	touch $(STAMP)
 
 demo: $(STAMP)
