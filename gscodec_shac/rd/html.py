@@ -69,14 +69,11 @@ def _signed(value: Any, unit: str, digits: int) -> tuple[str, str]:
     return f"{number:+.{digits}f}{unit}", ("better" if good else "worse") if number else ""
 
 
-def bd_html(table: list[dict[str, Any]], scene: str) -> str:
-    """The BD table of one scene (one row per method and quality metric)."""
-    from gscodec_shac.rd.report import METRICS
-
+def bd_html(table: list[dict[str, Any]], scene: str, labels: dict[str, str]) -> str:
+    """The BD table of one scene (one row per method and quality metric; ``labels``: metric names)."""
     entries = [e for e in table if e["scene"] == scene]
     if not entries:
         return "<p>No BD values: fewer than two methods with curves.</p>"
-    labels = {m: label for m, label, _ in METRICS}
     lines = [f"<p>BD against <b>{html.escape(entries[0]['anchor'])}</b>: negative BD-rate = fewer bytes at equal "
              "quality, positive BD-quality = better quality at equal size.</p>",
              '<table class="bd"><tr><th>method</th><th>quality</th><th>BD-rate</th><th>BD-quality</th>'
@@ -134,8 +131,9 @@ def comparison_html(folder: Path, scene: str, rows: list[dict[str, Any]]) -> str
 
 
 def html_report(rows: list[dict[str, Any]], table: list[dict[str, Any]], folder: str | Path, title: str,
-                figures: dict[str, Path] | None = None) -> str:
-    """The whole page: per scene its RD figure, BD table and image comparison."""
+                figures: dict[str, Path] | None = None, labels: dict[str, str] | None = None) -> str:
+    """The whole page: per scene its RD figure, BD table and image comparison (``folder``: the
+    sweep's output folder, holding ``renders/``; ``labels``: display names of the BD metrics)."""
     folder = Path(folder)
     body = [f"<h1>{html.escape(title)}</h1>"]
     for scene in ordered(r["scene"] for r in rows):
@@ -144,7 +142,7 @@ def html_report(rows: list[dict[str, Any]], table: list[dict[str, Any]], folder:
         figure = data_uri(figures[scene]) if figures and scene in figures else None
         if figure is not None:
             body.append(_img(figure, f"RD curves, {scene}", ' class="rd"'))
-        body.append(bd_html(table, scene))
+        body.append(bd_html(table, scene, labels or {}))
         body.append("<h3>Decoded renders (first test view)</h3>")
         body.append(comparison_html(folder, scene, scene_rows))
     return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"

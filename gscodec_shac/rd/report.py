@@ -235,6 +235,7 @@ def write_report(
     written["bd_csv"] = write_atomic(out_dir / "bd.csv", bd_csv(table), **DURABLE)
     from gscodec_shac.rd.html import html_report
 
-    page = html_report(rows, table, folder, name, {s: out_dir / f for s, f in figures.items()})
+    page = html_report(rows, table, folder, name, {s: out_dir / f for s, f in figures.items()},
+                       {m: label for m, label, _ in METRICS})
     written["html"] = write_atomic(out_dir / "report.html", page, **DURABLE)
     return written
