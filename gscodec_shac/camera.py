@@ -372,34 +372,81 @@ def camera_on_sphere(
     return look_at(name, center + radius * direction, center, up_v, width, height, focal)
 
 
+#: Share of the points (nearest the centre) that make up a scene's dense part.
+DENSE_SHARE = 0.9
+#: The thinnest principal axis of the dense part is its up axis only when its variance is at most
+#: this share of the middle one (a clearly flat scene: a ground, a table top); else ``fallback_up``.
+FLAT_RATIO = 0.5
+
+
+def dense_part(points: np.ndarray, opacities: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(centre, dense points, radius)`` of a scene: the :data:`DENSE_SHARE` of its (visible) points
+    nearest their median, and the radius of the sphere about the centre holding them.
+
+    Visible: activated opacity >= 0.1 when ``opacities`` is given and at least 16 pass; far
+    background Gaussians and floaters fall outside the dense part.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if opacities is not None:
+        solid = np.asarray(opacities) >= 0.1
+        if solid.sum() >= 16:
+            points = points[solid]
+    centre = np.median(points, axis=0)
+    distance = np.linalg.norm(points - centre, axis=1)
+    radius = max(float(np.quantile(distance, DENSE_SHARE)), 1e-6)
+    return centre, points[distance <= radius], radius
+
+
+def model_up(dense: np.ndarray, fallback_up: Sequence[float] = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """The up axis of a scene from its dense points: the thinnest principal axis when the scene is
+    clearly flat along it (see :data:`FLAT_RATIO`), signed to agree with ``fallback_up``; else
+    ``fallback_up`` (a scene as wide as it is tall has no up axis in its shape)."""
+    fallback = np.asarray(fallback_up, dtype=np.float64)
+    fallback = fallback / np.linalg.norm(fallback)
+    if len(dense) < 4:
+        return fallback
+    variances, axes = np.linalg.eigh(np.cov((dense - dense.mean(axis=0)).T))
+    if not variances[0] <= FLAT_RATIO * variances[1]:
+        return fallback
+    axis = axes[:, 0]
+    return -axis if axis @ fallback < 0 else axis
+
+
 def orbit_views(
     points: np.ndarray,
     n_views: int,
     width: int,
     height: int | None = None,
     *,
-    up: Sequence[float] = (0.0, 0.0, 1.0),
+    up: Sequence[float] | None = (0.0, 0.0, 1.0),
     elevations: Sequence[float] = (-10.0, 15.0, 40.0),
     fov_y_deg: float = 45.0,
     distance: float = 2.5,
+    opacities: np.ndarray | None = None,
 ) -> list[Camera]:
     """``n_views`` cameras on rings around a scene's ``points`` (N, 3), all looking at its centre.
 
-    Centre = median of the points; radius = ``distance`` x the median distance of the points
-    from it (robust to far outliers); the views are spread
-    round-robin over rings at the given elevations (degrees) with staggered azimuths; names
-    ``orbit_000`` ... in that order. Height defaults to 3/4 of the width.
+    Centre and extent come from the scene's dense part (:func:`dense_part`; pass ``opacities``
+    to leave out transparent Gaussians): centre = its median; radius = ``distance`` x the median
+    distance of the points from the centre, but at least far enough that the dense part's
+    bounding sphere fits the view (1.05 / sin(fov/2) of its radius), so no camera sits inside
+    the scene. ``up=None``: the up axis from the model (:func:`model_up`, else +Z). The views
+    are spread round-robin over rings at the given elevations (degrees) with staggered
+    azimuths; names ``orbit_000`` ... in that order. Height defaults to 3/4 of the width.
     """
     if n_views < 1 or width < 1:
         raise ValidationError(f"orbit views need n_views >= 1 and width >= 1, got {n_views}, {width}")
     height = max(1, round(0.75 * width)) if height is None else int(height)
-    up_v = np.asarray(up, dtype=np.float64)
-    if up_v.shape != (3,) or np.linalg.norm(up_v) < 1e-12:
-        raise ValidationError(f"up must be a non-zero 3-vector, got {list(up)!r}")
-    basis = orbit_basis(up_v)
     points = np.asarray(points, dtype=np.float64)
-    centre = np.median(points, axis=0)
-    radius = distance * max(float(np.median(np.linalg.norm(points - centre, axis=1))), 1e-6)
+    centre, dense, dense_radius = dense_part(points, opacities)
+    up_v = model_up(dense) if up is None else np.asarray(up, dtype=np.float64)
+    if up_v.shape != (3,) or np.linalg.norm(up_v) < 1e-12:
+        raise ValidationError(f"up must be a non-zero 3-vector, got {list(up_v)!r}")
+    basis = orbit_basis(up_v)
+    spread = max(float(np.median(np.linalg.norm(points - centre, axis=1))), 1e-6)
+    half_y = math.radians(fov_y_deg) / 2.0
+    half_fov = min(half_y, math.atan(math.tan(half_y) * width / height))  # the narrower of the two
+    radius = max(distance * spread, 1.05 * dense_radius / math.sin(half_fov))
     rings = len(elevations)
     cameras = []
     for i in range(n_views):

@@ -26,9 +26,10 @@ import warnings
 from typing import Iterator, NoReturn, Sequence
 
 from gscodec_shac import __version__, commands
-from gscodec_shac import errors
+from gscodec_shac import errors, kernels
 from gscodec_shac.commands._options import resolve_args
 from gscodec_shac.errors import GscodecError
+from gscodec_shac.progress import plain_progress_lines
 
 #: Exit statuses, as ``--help`` lists them.
 EXIT_CODES = (
@@ -97,8 +98,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     debug = bool(args.debug or os.environ.get(DEBUG_ENV, "") not in ("", "0"))
     try:
-        with _signals_as_exceptions(), _warnings_as_lines(debug):
-            result = int(args.func(resolve_args(args)) or 0)
+        with _signals_as_exceptions(), _warnings_as_lines(debug), plain_progress_lines(args.command):
+            args = resolve_args(args)
+            if not getattr(args, "quiet", True):
+                kernels.announce(args.command)
+            result = int(args.func(args) or 0)
             sys.stdout.flush()
         return result
     except GscodecError as exc:

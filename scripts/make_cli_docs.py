@@ -41,8 +41,14 @@ conventions hold for all of them:
   (replace existing outputs; `rd` and `demo`: recompute finished runs), `--up` (below).
 * **Progress bars** on every step a user waits for (sorting, coding chunks, rate control,
   SH k-means, SOG palettes, training, fine-tuning, sweeps, rendering, generating a scene, the
-  per-scene analysis); none under `-q` or when stderr is not a terminal (a log file gets no
-  carriage-return noise; `train` then prints a JSON log line every 100 steps). Reading a model
+  per-scene analysis); none under `-q`. When stderr is not a terminal (a log file), a bar that
+  runs longer than `$GSCODEC_PROGRESS_INTERVAL` seconds (default 30) writes its state as a plain
+  line every interval and its final state at the end, shorter ones write nothing (no
+  carriage-return noise; `GSCODEC_PROGRESS_INTERVAL=off`: no progress in logs at all; `train`
+  and `train-dynamic` instead print a JSON log line every 100 steps). The first
+  run on a machine compiles the numba kernels (about a minute; cached by numba beside the
+  package or in `~/.cache/numba`, `$NUMBA_CACHE_DIR` overrides) and says so in one line;
+  `python -m gscodec_shac.kernels --compile` does it ahead of time. Reading a model
   has none: `info` of 1M Gaussians takes 1.4-5 s in every format (start-up included; this busy
   2-core machine).
 * **Errors.** Every user mistake ends in one line `error: ...` and the exit status of its kind

@@ -12,6 +12,29 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_SCENES = Path(os.environ.get("GSCODEC_SHARED_SCENES", REPO_ROOT.parent / "shared" / "data" / "scenes"))
 
 
+#: Tests `make test-fast` leaves out: measured-slow node ids and modules (scripts/slow_tests.py).
+SLOW_LIST = Path(__file__).with_name("slow_tests.txt")
+
+
+def slow_entries(path: Path = SLOW_LIST) -> list[str]:
+    """Node ids (``tests/test_x.py::name[param]``) and modules (``tests/test_x.py``) in the slow list."""
+    if not path.is_file():
+        return []
+    lines = (line.split("#", 1)[0].strip() for line in path.read_text().splitlines())
+    return [line for line in lines if line]
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark ``slow`` every test named in tests/slow_tests.txt (``-m "not slow"`` is the fast tier)."""
+    entries = slow_entries()
+    modules = {e for e in entries if "::" not in e}
+    nodes = {e for e in entries if "::" in e}
+    for item in items:
+        module = item.nodeid.split("::", 1)[0]
+        if module in modules or item.nodeid in nodes:
+            item.add_marker(pytest.mark.slow)
+
+
 def shared_scene(*parts: str) -> Path:
     """Path under ../shared/data/scenes, or skip the test (with the reason) when absent."""
     path = SHARED_SCENES.joinpath(*parts)

@@ -112,6 +112,21 @@ def test_table_row_and_average(ac):
         analysis.rank_for_energy(curve, 0.0)
 
 
+def test_averages_never_mix_sh_degrees(ac):
+    sh3 = [analysis.table_row("a", ac, er=0.95, k=8), analysis.table_row("b", ac[:600], er=0.95, k=8)]
+    sh2 = analysis.table_row("c", ac[:, :24], er=0.95, k=8)  # degree 2: the first 8 AC coefficients per colour
+    assert [analysis.row_degree(r) for r in sh3 + [sh2]] == [3, 3, 2]
+    single = analysis.average_rows(sh3)
+    assert [a["scene"] for a in single] == ["Average"] and single[0]["n_scenes"] == 2
+    mixed = analysis.average_rows(sh3 + [sh2])
+    assert [(a["scene"], a["sh_degree"], a["n_scenes"]) for a in mixed] == [
+        ("Average (SH 2)", 2, 1), ("Average (SH 3)", 3, 2)]
+    assert mixed[0]["svd_rank"] == sh2.svd_rank
+    assert mixed[1]["svd_rank"] == pytest.approx((sh3[0].svd_rank + sh3[1].svd_rank) / 2)
+    with pytest.raises(ValidationError, match="average per degree"):
+        analysis.average_row(sh3 + [sh2])
+
+
 def test_correlation_groups_pick_the_right_pairs():
     corr = np.zeros((9, 9))  # degree 1: (l, m) = (1,-1), (1,0), (1,1)
     corr[0, 1] = corr[1, 0] = 0.9  # R and G of (1,-1): inter-component

@@ -129,3 +129,38 @@ def test_orbit_basis_and_camera_on_sphere_build_the_orbit():
     for i, cam in enumerate(orbit):
         assert camera_on_sphere(cam.name, center, 3.0, 2 * math.pi * i / 5, math.radians(-12.0), basis, 64, 48,
                                 50.0) == cam
+
+
+# --------------------------------------------------------------------------- orbit views of real scenes
+def test_the_up_axis_of_a_flat_scene_is_its_thinnest_axis():
+    from gscodec_shac.camera import model_up
+
+    rng = np.random.default_rng(0)
+    slab = rng.normal(size=(5000, 3)) * [4.0, 0.3, 3.0]  # flat along y
+    assert abs(model_up(slab, (0.0, -1.0, 0.0)) @ [0.0, -1.0, 0.0]) == pytest.approx(1.0, abs=1e-2)
+    assert model_up(slab, (0.0, 1.0, 0.0))[1] > 0.99  # signed to agree with the fallback
+    ball = rng.normal(size=(5000, 3))  # no thinnest axis: the fallback
+    assert model_up(ball, (0.0, 0.0, 1.0)).tolist() == [0.0, 0.0, 1.0]
+
+
+def test_orbit_views_see_a_real_scene_from_outside():
+    """kacy (no cameras, a room-like capture): before, the orbit sat inside it and every view
+    was 92-100% covered; now every camera is outside the dense part's bounding sphere, which
+    fits each view, and part of each frame is background as in a view of the whole scene."""
+    from gscodec_shac.camera import dense_part, orbit_views
+    from gscodec_shac.io.ply import read_ply
+    from gscodec_shac.render.renderer import Renderer
+    from tests.conftest import shared_scene
+
+    cloud = read_ply(shared_scene("kacy_sh3_9k", "point_cloud.ply"))
+    opacities = cloud.activated_opacities()
+    centre, dense, radius = dense_part(cloud.means, opacities)
+    cameras = orbit_views(cloud.means, 6, 64, opacities=opacities)
+    renderer = Renderer(cloud)
+    for camera in cameras:
+        assert np.linalg.norm(camera.center - centre) > radius, camera.name
+        uv, depth = camera.project(dense)
+        inside = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+        assert inside.mean() > 0.95, (camera.name, inside.mean())
+        covered = (renderer.render(camera, background=(0.0, 0.0, 0.0)).image.max(axis=2) > 0.02).mean()
+        assert 0.2 < covered < 0.85, (camera.name, covered)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -267,7 +268,8 @@ def test_demo_command_end_to_end(tmp_path, capsys):
     assert main(["demo", "--out", str(out), "-n", "1000", "--workers", "1", "--preset", "ultrafast", "-q"]) == 0
     text = capsys.readouterr().out
     assert "shac-pca-er0.97 vs baseline" in text and "demo finished" in text
-    for name in ("results.csv", "results.json", "bd_table.md", "bd_table.json", "report/rd_synthetic.png"):
+    for name in ("results.csv", "results.json", "bd_table.md", "bd_table.json", "report/rd_synthetic.png",
+                 "report/report.html", "renders/synthetic/uncompressed.png", "renders/synthetic/ground_truth.png"):
         assert (out / name).is_file(), name
     rows = load_results(out)
     fixed = [r for r in rows if r["method"] != "shac-auto"]
@@ -313,3 +315,75 @@ def test_sort_cache_keeps_set_coded_grids_of_different_bit_depths_apart(tmp_path
         grid, _, _ = cached_grid_order(encoder, small_cloud, tmp_path)
         assert encoder.encode(small_cloud, grid=grid).to_bytes() == Encoder(point, sh_stage="none").encode(small_cloud).to_bytes()
     assert len(list(tmp_path.glob("sort-*.npz"))) == 2
+
+
+# --------------------------------------------------------------------------- the HTML page
+CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                  "--hide-scrollbars"]
+
+
+def _page(tiny_run, tmp_path):
+    _, out, _ = tiny_run
+    paths = write_report(out, tmp_path / "report")
+    return paths, paths["html"].read_text()
+
+
+def test_report_html_is_self_contained_with_bd_numbers_and_renders(tiny_run, tmp_path):
+    import re
+
+    from gscodec_shac.rd.renders import reference_paths, run_render_path
+
+    _, out, outcome = tiny_run
+    for row in outcome.rows:  # every run kept its decoded render of the first test view
+        assert run_render_path(out, "syn", row["method"], row["rate_point"]).is_file(), row["key"]
+    assert all(p.is_file() for p in reference_paths(out, "syn"))  # uncompressed render, ground truth
+    paths, page = _page(tiny_run, tmp_path)
+    sources = re.findall(r'<img src="([^"]*)"', page)
+    assert sources and all(s.startswith("data:image/png;base64,") for s in sources)
+    assert "http" not in page.replace("http-equiv", "")  # nothing fetched from elsewhere
+    # the RD figure + per method (2 rate points x decoded over uncompressed, + uncompressed, + ground truth)
+    assert len(sources) == 1 + 2 * (2 * 2 + 2)
+    for entry in json.loads(paths["bd_json"].read_text()):
+        if entry["bd_rate_pct"] is not None:
+            assert f"{entry['bd_rate_pct']:+.1f}%" in page
+        if entry["bd_quality"] is not None and entry["metric"].startswith("psnr"):
+            assert f"{entry['bd_quality']:+.3f} dB" in page
+
+
+def _chromium(*args: str, tmp_path) -> subprocess.CompletedProcess:
+    import shutil
+    import tempfile
+
+    browser = shutil.which("chromium") or shutil.which("chromium-browser")
+    if browser is None:
+        pytest.skip("chromium is not installed (Debian: apt-get install chromium)")
+    profile = tempfile.mkdtemp(dir=tmp_path)
+    return subprocess.run([browser, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", *args],
+                          capture_output=True, text=True, timeout=180)
+
+
+def test_report_html_opens_in_headless_chromium(tiny_run, tmp_path):
+    """The page in a real browser: every image decodes (the page's script counts them into the
+    DOM) and the screenshot holds the plot and the renders, not a blank page."""
+    import re
+
+    import cv2
+
+    paths, page = _page(tiny_run, tmp_path)
+    url = paths["html"].resolve().as_uri()
+    dom = _chromium("--virtual-time-budget=10000", "--dump-dom", url, tmp_path=tmp_path)
+    assert dom.returncode == 0, dom.stderr[-2000:]
+    counted = re.search(r'data-images="(\d+)/(\d+)"', dom.stdout)
+    assert counted, dom.stdout[:500]
+    decoded, total = map(int, counted.groups())
+    assert total == page.count("<img ") and decoded == total
+    shot = tmp_path / "shot.png"
+    result = _chromium("--window-size=1200,1600", "--virtual-time-budget=10000", f"--screenshot={shot}", url,
+                       tmp_path=tmp_path)
+    assert result.returncode == 0 and shot.is_file(), result.stderr[-2000:]
+    image = cv2.imread(str(shot))
+    assert image is not None and image.shape[:2] == (1600, 1200)
+    not_white = (image.min(axis=2) < 200).mean()
+    colourful = (image.max(axis=2).astype(int) - image.min(axis=2) > 40).mean()  # plot lines and renders
+    assert not_white > 0.2 and colourful > 0.02, (not_white, colourful)

@@ -1,9 +1,10 @@
 """A real outside client reads our decoded PLY: PlayCanvas splat-transform (npm).
 
-The tool is looked for in ``~/.cache/gscodec-shac/npm`` (override with
-``GSCODEC_SHAC_NPM_PREFIX``); when absent and ``npm`` is available the test tries
-``npm install --prefix <cache> @playcanvas/splat-transform`` once, and skips with
-the reason when node, npm or the network is missing.
+The tool is looked for as the project finds it (:func:`gscodec_shac.rd.external.find_splat_transform`:
+``$GSCODEC_SHAC_SPLAT_TRANSFORM``, then ``splat-transform`` on ``PATH``, then ``~/.cache/gscodec-shac/npm``,
+override with ``GSCODEC_SHAC_NPM_PREFIX``); only when none is found and ``npm`` is available does the
+test try ``npm install --prefix <cache> @playcanvas/splat-transform`` once, and it skips with the
+reason when node, npm or the network is missing.
 """
 
 import csv
@@ -28,6 +29,11 @@ def splat_transform() -> Path:
     node = shutil.which("node")
     if node is None:
         pytest.skip("node is not installed")
+    from gscodec_shac.rd.external import find_splat_transform
+
+    found = find_splat_transform()
+    if found is not None:
+        return found
     tool = PREFIX / "node_modules" / ".bin" / "splat-transform"
     if not tool.exists():
         npm = shutil.which("npm")

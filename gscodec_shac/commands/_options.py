@@ -82,9 +82,9 @@ def add_up(container: argparse._ActionsContainer, what: str) -> None:
 
 
 def add_quiet(parser: argparse.ArgumentParser) -> None:
-    """``-q/--quiet``: no progress bars (they are also off when stderr is not a terminal)."""
+    """``-q/--quiet``: no progress bars (in a log, long ones write plain lines: gscodec_shac.progress)."""
     parser.add_argument("-q", "--quiet", action="store_true",
-                        help="no progress bars (they are also off when stderr is not a terminal)")
+                        help="no progress bars (in a log file, bars over 30 s write a plain line every 30 s)")
 
 
 def add_json(parser: argparse.ArgumentParser, what: str = "the summary") -> None:

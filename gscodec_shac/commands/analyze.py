@@ -3,7 +3,7 @@
 For each scene: rank needed for ``--er`` energy and energy captured by ``--k``
 components, for the SVD of the standardised AC matrix (eq. 23-26) and for
 degree-order truncation (raw, centred and standardised energy; see
-:mod:`gscodec_shac.shac.analysis`), plus the average row. With ``--out DIR`` it
+:mod:`gscodec_shac.shac.analysis`), plus one average row per SH degree present. With ``--out DIR`` it
 writes ``table.json``, ``table.csv``, one correlation heatmap per scene
 (``correlation_<scene>.png``) and ``er_curves.png``.
 """
@@ -34,7 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         subparsers, "analyze",
         help="low-rank analysis of SH AC coefficients (paper Table I, Fig. 1)",
         description="Rank at an energy-retention target and energy at k components of the SH AC matrix, "
-        "for the SVD of the standardised matrix and for degree truncation, per scene and averaged "
+        "for the SVD of the standardised matrix and for degree truncation, per scene and averaged per SH degree "
         "(paper Table I); with --out, correlation heatmaps (Fig. 1) and ER curves as PNG. Several "
         "scenes go in, so the output folder stays an option.",
         examples=["gscodec-shac analyze a.ply b.ply --er 0.95 --k 24 --out analysis/",
@@ -60,7 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from gscodec_shac.errors import ValidationError
-    from gscodec_shac.shac.analysis import average_row, check_energy_target
+    from gscodec_shac.shac.analysis import average_rows, check_energy_target
 
     check_energy_target(args.er)
     if not args.scenes and args.synthetic is None:
@@ -81,12 +81,12 @@ def run(args: argparse.Namespace) -> int:
     results = [_analyse(name, ac, args) for name, ac in tqdm(_load_scenes(args), total=total, desc="analyze",
                                                              unit="scene", disable=args.quiet, leave=False)]
     rows = [row for row, _ in results]
-    average = average_row(rows)
-    print(format_table(rows, average))
+    averages = average_rows(rows)  # one per SH degree: ranks of different degrees do not mix
+    print(format_table(rows, averages))
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        write_outputs(out, rows, average, [extra for _, extra in results])
+        write_outputs(out, rows, averages, [extra for _, extra in results])
         print(f"wrote {out / 'table.json'}, {out / 'table.csv'} and {len(rows) + 1} PNGs in {out}")
     return 0
 
@@ -141,14 +141,14 @@ def _analyse(name: str, ac, args: argparse.Namespace):
     return row, extra
 
 
-def format_table(rows, average: dict) -> str:
+def format_table(rows, averages: list[dict]) -> str:
     """Plain-text Table I: ranks, then energies in percent."""
     width = max(12, *(len(r.scene) for r in rows))
     k, er = rows[0].k, rows[0].er
     header = f"{'scene':<{width}} {'N':>9} " + " ".join(f"{h:>14}" for h, _, _ in PRINTED)
     lines = [f"rank at ER={er:g}; energy at k={k} (E@k, %); raw/ctr = truncation on raw/mean-centred coefficients",
              header, "-" * len(header)]
-    for item in [r.to_dict() for r in rows] + [average]:
+    for item in [r.to_dict() for r in rows] + averages:
         cells = [_cell(item[f], pct) for _, f, pct in PRINTED]
         lines.append(f"{item['scene']:<{width}} {int(round(item['n_gaussians'])):>9,} " + " ".join(cells))
     return "\n".join(lines)
@@ -160,17 +160,18 @@ def _cell(value, percent: bool) -> str:
     return f"{value:14.1f}" if isinstance(value, float) else f"{value:14d}"
 
 
-def write_outputs(out: Path, rows, average: dict, extras: list[dict]) -> None:
+def write_outputs(out: Path, rows, averages: list[dict], extras: list[dict]) -> None:
     """table.json, table.csv, correlation_<scene>.png per scene and er_curves.png."""
     from gscodec_shac import sh_index
     from gscodec_shac.atomic import write_atomic
 
-    write_atomic(out / "table.json", json.dumps({"rows": [r.to_dict() for r in rows], "average": average}, indent=2))
+    write_atomic(out / "table.json", json.dumps({"rows": [r.to_dict() for r in rows], "averages": averages,
+                                                     "average": averages[0] if len(averages) == 1 else None}, indent=2))
     fields = [f for f in rows[0].to_dict() if f not in ("degree_energy_raw", "mean_abs_correlation")]
     text = io.StringIO(newline="")
     writer = csv.DictWriter(text, fieldnames=fields, extrasaction="ignore")
     writer.writeheader()
-    for item in [r.to_dict() for r in rows] + [average]:
+    for item in [r.to_dict() for r in rows] + averages:
         writer.writerow({f: item.get(f, "") for f in fields})
     write_atomic(out / "table.csv", text.getvalue())
     for row, extra in zip(rows, extras):

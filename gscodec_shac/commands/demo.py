@@ -126,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
     figure = paths.get("figure:synthetic")
     print(f"RD plot: {figure}" if figure else "RD plot: none (no finished runs)")
     print(f"BD table: {out / 'bd_table.md'}; results: {out / 'results.csv'}; report: {paths['markdown']}")
+    print(f"open in a browser: {paths['html']} (RD plots, BD table, decoded renders next to the uncompressed one)")
     print(f"demo finished in {time.perf_counter() - tic:.0f} s "
           f"({outcome.executed} runs executed, {outcome.reused} reused)")
     return 1 if outcome.failed else 0

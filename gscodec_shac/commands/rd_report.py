@@ -12,7 +12,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         subparsers, "rd-report",
         help="tables, BD-rates and RD plots from the results of 'gscodec-shac rd'",
         description="Read RESULTS/results.json (or the run log) and write report.md (RD and BD tables), "
-        "bd.json, bd.csv and one rd_<scene>.png per scene into OUT_DIR (default: RESULTS/report).",
+        "bd.json, bd.csv, one rd_<scene>.png per scene and report.html (one self-contained page with the plots, "
+        "the BD table and decoded renders to compare) into OUT_DIR (default: RESULTS/report).",
         examples=["gscodec-shac rd-report runs/bonsai",
                   "gscodec-shac rd-report runs/bonsai bonsai_report/ --x-axis bpg"],
     )
@@ -42,8 +43,8 @@ def run(args: argparse.Namespace) -> int:
 
         raise OutputError(f"{out}: the report folder is a file")
     # a report this command wrote before is regenerated in place; other files need --force
-    check_outputs([out / "report.md", out / "bd.json", out / "bd.csv"], force=args.force or _own_report(out),
-                  what="report")
+    check_outputs([out / "report.md", out / "report.html", out / "bd.json", out / "bd.csv"],
+                  force=args.force or _own_report(out), what="report")
     paths = write_report(args.results, args.out, anchor=args.anchor, x_axis=args.x_axis, title=args.title,
                          figure_prefix=args.prefix)
     rows = load_results(args.results)
@@ -53,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
             rate = f"{entry['bd_rate_pct']:+.1f}%" if entry["bd_rate_pct"] is not None else "n/a"
             gain = f"{entry['bd_quality']:+.3f} dB" if entry["bd_quality"] is not None else "n/a"
             print(f"{entry['scene']}\t{entry['method']}\t{entry['metric']}\tBD-rate {rate}\tBD-PSNR {gain}")
-    print(f"report: {paths['markdown']}")
+    print(f"report: {paths['markdown']}; page with renders: {paths['html']}")
     return 0
 
 

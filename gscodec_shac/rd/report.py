@@ -5,7 +5,8 @@
   per scene and quality metric (PSNR/SSIM against ground truth and against the
   uncompressed model), with :mod:`gscodec_shac.rd.bd`.
 * :func:`markdown_report` / :func:`write_report` - the Markdown tables, ``bd.json`` /
-  ``bd.csv`` and one RD figure per scene (:mod:`gscodec_shac.rd.plots`).
+  ``bd.csv``, one RD figure per scene (:mod:`gscodec_shac.rd.plots`) and ``report.html``,
+  one self-contained page with the figures, BD tables and decoded renders (:mod:`gscodec_shac.rd.html`).
 """
 
 from __future__ import annotations
@@ -232,4 +233,9 @@ def write_report(
     written["markdown"] = write_atomic(out_dir / "report.md", markdown_report(rows, table, name, figures), **DURABLE)
     written["bd_json"] = write_json(out_dir / "bd.json", table, **DURABLE)
     written["bd_csv"] = write_atomic(out_dir / "bd.csv", bd_csv(table), **DURABLE)
+    from gscodec_shac.rd.html import html_report
+
+    page = html_report(rows, table, folder, name, {s: out_dir / f for s, f in figures.items()},
+                       {m: label for m, label, _ in METRICS})
+    written["html"] = write_atomic(out_dir / "report.html", page, **DURABLE)
     return written

@@ -153,6 +153,11 @@ def _run_once(task: RunTask) -> dict[str, Any]:
     tic = time.perf_counter()
     images = render_all(outcome.decoded, views.cameras, task.scene.spec.background)
     render_s = time.perf_counter() - tic
+    if images:  # the first test view, kept for the HTML report's image comparison
+        from gscodec_shac.rd.renders import save_run_view
+
+        save_run_view(out_dir, task.scene_name, task.method.name, task.rate_point_name, images[0],
+                      views.reference[0], views.ground_truth[0] if views.ground_truth is not None else None)
 
     n_input = int(views.uncompressed.get("n_gaussians") or load_cloud().num_gaussians)
     row = base_row(task)

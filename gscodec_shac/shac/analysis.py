@@ -315,14 +315,42 @@ def degree_energy_shares(energies: np.ndarray) -> list[float]:
     return shares
 
 
-def average_row(rows: list[TableRow]) -> dict:
-    """The "Average" line of Table I: mean of every numeric column over scenes."""
+def row_degree(row: TableRow) -> int:
+    """SH degree of a row's scene, from its AC column count (3 colours x ((d+1)^2 - 1))."""
+    return int(round((row.n_ac_columns // 3 + 1) ** 0.5)) - 1
+
+
+def average_row(rows: list[TableRow], label: str = "Average") -> dict:
+    """The "Average" line of Table I: mean of every numeric column over scenes of one SH degree.
+
+    Ranks and energies of different degrees are not comparable (the rank of a degree-1 scene
+    is out of 9 columns, of a degree-3 scene out of 45), so mixing degrees is refused; see
+    :func:`average_rows`.
+    """
     if not rows:
         raise ValidationError("no rows to average")
-    out: dict = {"scene": "Average", "er": rows[0].er, "k": rows[0].k}
+    degrees = sorted({row_degree(r) for r in rows})
+    if len(degrees) > 1:
+        raise ValidationError(f"cannot average scenes of SH degrees {degrees} together: average per degree")
+    out: dict = {"scene": label, "sh_degree": degrees[0], "n_scenes": len(rows), "er": rows[0].er, "k": rows[0].k}
     for name in NUMERIC_FIELDS:
         out[name] = float(np.mean([getattr(r, name) for r in rows]))
     return out
+
+
+def average_rows(rows: list[TableRow]) -> list[dict]:
+    """One average line per SH degree present, lowest degree first.
+
+    A single degree gives the one line labelled "Average"; several give "Average (SH d)" lines.
+    """
+    if not rows:
+        raise ValidationError("no rows to average")
+    groups: dict[int, list[TableRow]] = {}
+    for row in rows:
+        groups.setdefault(row_degree(row), []).append(row)
+    if len(groups) == 1:
+        return [average_row(rows)]
+    return [average_row(group, f"Average (SH {degree})") for degree, group in sorted(groups.items())]
 
 
 def _check_mode(mode: str) -> None:
