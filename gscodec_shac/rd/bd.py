@@ -12,7 +12,15 @@ interpolant (PCHIP, :class:`scipy.interpolate.PchipInterpolator`) through its po
 
 The integrals are exact integrals of the interpolants (PCHIP's antiderivative), not
 sampled sums. Points are sorted by the abscissa; points repeating an abscissa are averaged.
-A curve needs at least two distinct points (MPEG uses four); where there is no overlap, or
+
+Both metrics are computed on each curve's **monotone hull** (:func:`monotone_hull`): the
+points whose quality exceeds that of every cheaper point. A point costing more bytes for no
+better quality is dominated, and keeping it would make quality-as-a-function-of-rate and
+rate-as-a-function-of-quality two different curves (a non-monotone curve has no inverse),
+so BD-rate and BD-PSNR could disagree in sign for a curve that lies above the anchor
+everywhere. On monotone hulls, opposite signs only happen where the two curves cross
+(the metrics integrate over different intervals); :func:`opposite_sign_reason` says so.
+A curve needs at least two hull points (MPEG uses four); where there is no overlap, or
 too few points, the result is NaN with a reason.
 """
 
@@ -35,6 +43,7 @@ class BdResult:
     overlap: tuple[float, float] | None = None  # integration interval
     monotonic: bool = True  # both curves had quality increasing with rate
     reason: str | None = None  # why ``value`` is NaN
+    dropped: int = 0  # points left out of the two curves' monotone hulls
 
     @property
     def ok(self) -> bool:
@@ -58,8 +67,29 @@ def _curve(x: Sequence[float], y: Sequence[float], what: str) -> tuple[np.ndarra
 
 
 def _is_monotonic(rate: np.ndarray, quality: np.ndarray) -> bool:
-    order = np.argsort(rate)
+    keep = np.isfinite(rate) & np.isfinite(quality)
+    rate, quality = rate[keep], quality[keep]
+    order = np.argsort(rate, kind="stable")
     return bool(np.all(np.diff(quality[order]) > 0))
+
+
+def monotone_hull(rate: Sequence[float], quality: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """The finite points whose quality is above that of every point with a lower rate.
+
+    Sorted by rate; of points sharing a rate only the best one can survive. The result is
+    strictly increasing in both rate and quality, so it is a function either way round.
+    """
+    r, q = np.asarray(rate, dtype=np.float64), np.asarray(quality, dtype=np.float64)
+    keep = np.isfinite(r) & np.isfinite(q)
+    r, q = r[keep], q[keep]
+    order = np.lexsort((-q, r))  # by rate, best quality first within a rate
+    hull_r: list[float] = []
+    hull_q: list[float] = []
+    for i in order:
+        if not hull_q or (q[i] > hull_q[-1] and r[i] > hull_r[-1]):
+            hull_r.append(float(r[i]))
+            hull_q.append(float(q[i]))
+    return np.asarray(hull_r), np.asarray(hull_q)
 
 
 def _mean_gap(anchor: tuple[np.ndarray, np.ndarray], test: tuple[np.ndarray, np.ndarray]) -> tuple[float, tuple[float, float]] | str:
@@ -114,17 +144,39 @@ def _bjontegaard(
     for item in (log_a, log_t):
         if isinstance(item, str):
             return BdResult(math.nan, reason=item)
+    n_points = int(np.sum(np.isfinite(log_a) & np.isfinite(np.asarray(anchor_quality, float))))
+    n_points += int(np.sum(np.isfinite(log_t) & np.isfinite(np.asarray(test_quality, float))))
+    log_a, anchor_quality = monotone_hull(log_a, anchor_quality)
+    log_t, test_quality = monotone_hull(log_t, test_quality)
+    dropped = n_points - log_a.size - log_t.size
     if rate_axis:
         anchor, test = _curve(anchor_quality, log_a, "anchor"), _curve(test_quality, log_t, "test")
     else:
         anchor, test = _curve(log_a, anchor_quality, "anchor"), _curve(log_t, test_quality, "test")
     for item in (anchor, test):
         if isinstance(item, str):
-            return BdResult(math.nan, reason=item)
+            return BdResult(math.nan, reason=item.replace("distinct points", "points on its monotone hull"),
+                            monotonic=monotonic, dropped=dropped)
     gap = _mean_gap(anchor, test)
     if isinstance(gap, str):
-        return BdResult(math.nan, reason=gap, monotonic=monotonic)
-    return BdResult(gap[0], gap[1], monotonic)
+        return BdResult(math.nan, reason=gap, monotonic=monotonic, dropped=dropped)
+    return BdResult(gap[0], gap[1], monotonic, dropped=dropped)
+
+
+def opposite_sign_reason(rate: BdResult, quality: BdResult) -> str | None:
+    """Why BD-rate and BD-quality disagree (more bytes yet better quality, or the reverse), or None.
+
+    On monotone hulls a curve above the anchor over the whole common rate range also needs
+    fewer bytes at every common quality, so a disagreement means the curves cross: the
+    two metrics average over different intervals (quality vs log-rate) and each sees more
+    of one side of the crossing.
+    """
+    if not (rate.ok and quality.ok) or rate.value == 0 or quality.value == 0:
+        return None
+    if (rate.value < 0) == (quality.value > 0):
+        return None
+    return ("BD-rate and BD-quality disagree in sign: the curves cross, and BD-rate averages over the common "
+            "quality range while BD-quality averages over the common rate range")
 
 
 #: BD-PSNR is BD-quality with PSNR as the quality.

@@ -17,7 +17,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from gscodec_shac.rd.bd import bd_quality, bd_rate
+from gscodec_shac.rd.bd import bd_quality, bd_rate, opposite_sign_reason
 from gscodec_shac.atomic import write_atomic, write_json
 from gscodec_shac.rd.cache import DURABLE
 from gscodec_shac.rd.curves import Curve, curves, num, ordered, short_rate_point
@@ -61,10 +61,19 @@ def bd_table(rows: list[dict[str, Any]], anchor: str = "baseline") -> list[dict[
                 "note": "; ".join(
                     [f"BD-rate: {rate.reason} in quality" for _ in [0] if rate.reason]
                     + [f"BD-quality: {quality.reason} in rate" for _ in [0] if quality.reason]
-                    + ([] if rate.monotonic and quality.monotonic else ["quality not increasing with rate"])
+                    + _hull_notes(rate)
+                    + [r for r in [opposite_sign_reason(rate, quality)] if r]
                     + _narrow_overlap_notes(base, column, rate, quality)),
             })
     return table
+
+
+def _hull_notes(result: Any) -> list[str]:
+    """Say that BD used the monotone hulls when some point's quality did not rise with rate."""
+    if result.monotonic:
+        return []
+    return [f"quality not increasing with rate: BD on the monotone hulls ({result.dropped} dominated "
+            f"point{'s' if result.dropped != 1 else ''} left out)"]
 
 
 NARROW_OVERLAP = 0.25  # an overlap below this share of the anchor's span is flagged
@@ -169,7 +178,8 @@ def bd_markdown(table: list[dict[str, Any]], scene: str) -> list[str]:
         same = f"{e['quality_change']:+.{digits}f}{unit}" if e.get("quality_change") is not None else "-"
         lines.append(f"| {e['method']} | {labels[e['metric']]} | {rate} | {quality} | {size} | {same} | {e['note']} |")
     if any(not e["monotonic"] for e in entries):
-        lines += ["", "\\* a curve whose quality does not increase with rate: the value is indicative."]
+        lines += ["", "\\* a curve whose quality does not increase with rate everywhere: BD is computed on the "
+                  "monotone hulls (each curve without its dominated points, see the note)."]
     return lines
 
 
