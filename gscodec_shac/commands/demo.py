@@ -122,7 +122,9 @@ def run(args: argparse.Namespace) -> int:
             rate = (f"BD-rate {entry['bd_rate_pct']:+.1f}%" if entry["bd_rate_pct"] is not None
                     else "BD-rate undefined (the PSNR ranges do not overlap)")
             gain = f"BD-PSNR {entry['bd_quality']:+.2f} dB" if entry["bd_quality"] is not None else "BD-PSNR undefined"
-            print(f"{entry['method']} vs baseline, PSNR against {against}: {same}; {rate}; {gain}")
+            notes = [n for n in entry["note"].split("; ") if "monotone hulls" in n or "disagree" in n]
+            print(f"{entry['method']} vs baseline, PSNR against {against}: {same}; {rate}; {gain}"
+                  + "".join(f" ({n})" for n in notes))
     figure = paths.get("figure:synthetic")
     print(f"RD plot: {figure}" if figure else "RD plot: none (no finished runs)")
     print(f"BD table: {out / 'bd_table.md'}; results: {out / 'results.csv'}; report: {paths['markdown']}")
