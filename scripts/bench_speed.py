@@ -63,7 +63,8 @@ def measured(command: list[str], nice: int, root: Path = ROOT) -> dict:
     env = {**os.environ, "PYTHONPATH": str(root) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     load = os.getloadavg()[0]
     tic = time.perf_counter()
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
+    # cwd = the checkout: ``python -m`` / ``-c`` put the working directory first on sys.path
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, cwd=root,
                                preexec_fn=(lambda: os.nice(nice)) if nice else None)
     output = process.stdout.read()  # type: ignore[union-attr]
     _, status, usage = os.wait4(process.pid, 0)
@@ -87,6 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--nice", type=int, default=5, help="niceness of the measured processes")
     parser.add_argument("--baseline", type=Path, help="another checkout: its decodes run right before ours (paired)")
     args = parser.parse_args(argv)
+    args.out = args.out.resolve()
     args.out.mkdir(parents=True, exist_ok=True)
     cli = [sys.executable, "-m", "gscodec_shac"]
     peer = None if args.no_peer else find_splat_transform()
