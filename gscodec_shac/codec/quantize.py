@@ -26,6 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from concurrent.futures import ThreadPoolExecutor
+from typing import Callable
 
 import numpy as np
 
@@ -268,7 +269,7 @@ def join_planes(high: np.ndarray, low: np.ndarray) -> np.ndarray:
     return (np.asarray(high, dtype=np.uint16) << 8) | np.asarray(low, dtype=np.uint16)
 
 
-def map_channels(work, count: int, workers: int) -> None:
+def map_channels(work: Callable[[int], None], count: int, workers: int) -> None:
     """Run ``work(c)`` for ``c`` in ``range(count)``, in ``workers`` threads when more than one."""
     if workers <= 1 or count <= 1:
         for c in range(count):

@@ -221,6 +221,14 @@ def resize_cameras(cameras: list, scale: float | None, width: int | None) -> lis
     return cameras
 
 
+def require_input(path: str) -> None:
+    """A missing input is the error to report first, before anything about the output."""
+    from pathlib import Path
+
+    if not Path(path).exists():
+        raise GscodecError(f"{path}: no such file or folder")
+
+
 def check_results_folder(out, force: bool) -> None:
     """A sweep's output folder: absent, empty, or one a sweep wrote (it resumes there); anything
     else (a file, a folder of other files) is refused unless ``--force``."""

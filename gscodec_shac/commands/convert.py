@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from gscodec_shac.commands._options import add_command, add_force, add_quiet, show_progress
+from gscodec_shac.commands._options import add_command, add_force, add_quiet, require_input, show_progress
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -33,12 +33,11 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from gscodec_shac.atomic import check_output, check_outputs, inputs_protected
-    from gscodec_shac.errors import GscodecError, OutputError
+    from gscodec_shac.errors import OutputError
     from gscodec_shac.io.models import check_model_extension, detect_format, output_files, output_format, read_model
     from gscodec_shac.io.models import report_notes, write_model
 
-    if not Path(args.input).exists():
-        raise GscodecError(f"{args.input}: no such file or folder")
+    require_input(args.input)
     if Path(args.output).suffix.lower() == ".gsc":
         raise OutputError(f"{args.output}: a .gsc is written by 'gscodec-shac encode IN OUT.gsc', not by convert")
     check_model_extension(args.output)

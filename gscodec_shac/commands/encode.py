@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     import json
 
     from gscodec_shac.codec import encode_file
-    from gscodec_shac.codec.defaults import DEFAULT_RATE_POINT, DEFAULT_SH_STAGE, choose_default_sh
+    from gscodec_shac.codec.defaults import DEFAULT_RATE_POINT, DEFAULT_SH_STAGE, choose_default_sh, describe_default
     from gscodec_shac.codec.rate_points import load_rate_point
     from gscodec_shac.errors import GscodecError
     from gscodec_shac.io.models import report_notes
@@ -140,13 +140,6 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def describe_default(stage: str | None) -> str:
-    """The default encode in words (from :mod:`gscodec_shac.codec.defaults`)."""
-    from gscodec_shac.codec.defaults import describe_default as describe
-
-    return describe(stage)
-
-
 def size_phrase(summary: dict) -> str:
     """``154.41 bits per input Gaussian (75,000 in, 7,732 pruned)``: the one bits-per-Gaussian
     definition of every command (file bits / Gaussians given to the encoder)."""
@@ -161,10 +154,10 @@ def check_paths(args: argparse.Namespace) -> None:
     from pathlib import Path
 
     from gscodec_shac.atomic import check_output
-    from gscodec_shac.errors import GscodecError, OutputError
+    from gscodec_shac.commands._options import require_input
+    from gscodec_shac.errors import OutputError
 
-    if not Path(args.input).exists():
-        raise GscodecError(f"{args.input}: no such file or folder")
+    require_input(args.input)
     check_output(args.output, force=args.force,
                  inputs=[args.input, (args.rate_point or "").rsplit(":", 1)[0], args.cameras])
     if Path(args.output).suffix.lower() != ".gsc":
