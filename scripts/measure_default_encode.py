@@ -22,7 +22,10 @@ import numpy as np
 
 
 def _psnr_views(reference: list[np.ndarray], images: list[np.ndarray]) -> float:
-    mse = float(np.mean([np.mean((a - b) ** 2) for a, b in zip(reference, images)]))
+    """PSNR of the mean MSE over the views, images clipped to [0, 1] as they are displayed."""
+    from gscodec_shac.metrics import mse as image_mse
+
+    mse = float(np.mean([image_mse(b, a) for a, b in zip(reference, images)]))
     return 10.0 * math.log10(1.0 / max(mse, 1e-20))
 
 

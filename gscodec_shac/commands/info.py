@@ -104,7 +104,9 @@ def _compare(args: argparse.Namespace) -> int:
         source = f"{len(views)} orbit views"
     reference = render_views(first, views, progress=False)
     images = render_views(second, views, progress=False)
-    mse = float(np.mean([np.mean((a - b) ** 2) for a, b in zip(reference, images)]))
+    from gscodec_shac.metrics import mse as image_mse
+
+    mse = float(np.mean([image_mse(b, a) for a, b in zip(reference, images)]))  # displayed images: clipped to [0, 1]
     psnr = 10.0 * math.log10(1.0 / mse) if mse > 0 else math.inf
     result = {"a": args.compare[0], "b": args.compare[1], "psnr": psnr, "views": len(views), "on": source,
               "a_gaussians": first.num_gaussians, "b_gaussians": second.num_gaussians,
