@@ -59,7 +59,7 @@ from gscodec_shac.shac.base import ShStage, make_stage
 #: The template rate point of SHAC-auto.
 TEMPLATE = "shac_auto:template"
 #: Bumped when the controller's choices change for the same input (RD sweeps key their rows on it).
-VERSION = 3
+VERSION = 4
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
 #: QPs at which the probe is encoded; the models interpolate between them (and extrapolate).
