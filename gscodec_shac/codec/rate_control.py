@@ -12,9 +12,12 @@ each attribute on its own:
 
 * **rate** ``R_a(x)`` and **attribute error** ``e_a(x)``: real encodes and decodes of a
   *probe* (a sample of the cloud made of a few runs along its Morton order, so it keeps
-  the neighbourhoods the grid codecs exploit) at a handful of QPs, all attributes at once,
-  scaled to the whole cloud and interpolated in the log domain between probe QPs;
-  position bits are measured exactly on the whole cloud (set coding is cheap);
+  the neighbourhoods the grid codecs exploit, plus the Gaussians holding each coded
+  channel's extremes, so its quantiser ranges are the whole cloud's) at a handful of QPs,
+  all attributes at once, scaled to the whole cloud and interpolated (PCHIP in the log
+  domain) between probe QPs; the water-filled SH features' rate is summed over the
+  features kept at each base QP, each at its own QP; position bits are measured exactly
+  on the whole cloud (set coding is cheap);
 * **render sensitivity** ``k_a``: the rendered MSE per unit attribute MSE, from renders of
   the cloud with that attribute of the probe's Gaussians as the codec decoded it (QP 30),
   on a few views (the scene's cameras, else orbit views), against renders of the
@@ -25,12 +28,16 @@ each attribute on its own:
 
 The predicted rendered error is ``D = sum_a k_a e_a(x_a)`` (PSNR against the uncompressed
 model, images in [0, 1]). A Lagrangian search (per attribute ``min R_a + lambda D_a``)
-traces the lower convex hull of (size, D) and picks the point meeting the target; one real
-encode confirms it, and the controller corrects its rate model with what the encode
-measured and re-encodes until a size target is met (at most ``max_encodes`` encodes;
-unchanged chunks are taken from a cache). A size target is never exceeded; a target
-outside the reachable range raises :class:`TargetUnreachableError` naming the reachable
-limit.
+traces the lower convex hull of (size, D) and picks the point meeting the middle of the
+target's window; one real encode confirms it, and the controller corrects its models with
+what the encode measured and re-encodes until the target is met (at most ``max_encodes``
+encodes; unchanged chunks are taken from a cache): a size within 3% under it (each
+attribute's bytes as measured), a PSNR within 0.3 dB above it (the prediction error,
+measured minus predicted PSNR, interpolated between the encodes so far, brackets the
+next plan on the hull of the QPs). ``Outcome.trials`` records the predicted and measured
+bytes and PSNR of every encode. A size target is never exceeded, nor a PSNR target
+undershot; a target outside the reachable range raises :class:`TargetUnreachableError`
+naming the reachable limit.
 """
 
 from __future__ import annotations
@@ -46,6 +53,8 @@ from tqdm.auto import tqdm
 
 from gscodec_shac.camera import Camera, orbit_views
 from gscodec_shac.codec import quantize as qz
+from gscodec_shac.codec.allocation import waterfill_qps
+from gscodec_shac.codec.attributes import ATTRIBUTES
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.decoder import Decoder
 from gscodec_shac.codec.encoder import Encoder
@@ -231,6 +240,7 @@ class RateController:
         self._references: list[np.ndarray] = []
         self._exact: dict[str, dict[int, float]] = {}
         self._probe_decoded: tuple[np.ndarray, GaussianCloud] | None = None  # (rows, decoded) at SENSITIVITY_QP
+        self._sh_points: dict[int, dict[int, float]] = {}  # SH feature (-1: side information) -> {QP: bytes}
 
     # -------------------------------------------------------------- fit
     def fit(self) -> "RateController":
@@ -259,9 +269,9 @@ class RateController:
             self.seconds_["calibrate"] = time.perf_counter() - tic
         grid = np.arange(0, 52)
         for name in rates:
+            rate = self._sh_rates(grid) if name == "sh" else _interpolate_log(PROBE_QPS, rates[name], grid)
             self.models_[name] = AttributeModel(
-                name, grid, _interpolate_log(PROBE_QPS, rates[name], grid),
-                sensitivity[name] * _interpolate_log(PROBE_QPS, errors[name], grid))
+                name, grid, rate, sensitivity[name] * _interpolate_log(PROBE_QPS, errors[name], grid))
         self.models_["positions"] = self._position_model(sensitivity["positions"])
         self.overhead_ = overhead
         return self
@@ -283,6 +293,9 @@ class RateController:
         """Per attribute, bytes (scaled to the whole cloud) and attribute MSE at each probe QP
         (``bar``: a progress bar advanced once per probe)."""
         rows = _probe_rows(self.cloud)
+        if rows.size < self.cloud.num_gaussians:
+            rows = np.union1d(rows, _extreme_rows(self.cloud, self._sh_values()))
+        self._sh_points = {}
         probe = self.cloud.select(rows)
         scale = self.cloud.num_gaussians / probe.num_gaussians
         names = [a for a in QP_ATTRIBUTES if a != "sh" or self.stage_ is not None]
@@ -301,10 +314,58 @@ class RateController:
                 errors[a][i] = _attribute_mse(a, source, decoded, point.color == "ycbcr")
             if qp == SENSITIVITY_QP:
                 self._probe_decoded = (rows[encoder.order_], decoded)
+            if "sh" in names:
+                self._record_sh_chunks(stream, scale)
             overhead = max(overhead, sizes.get("header", 0))
             if bar is not None:
                 bar.update(1)
         return rates, errors, overhead
+
+    def _sh_values(self) -> np.ndarray | None:
+        """The whole cloud's SH features as the encoder quantises them (YCbCr triplets where it applies)."""
+        if self.stage_ is None:
+            return None
+        ac = self.cloud.ac_matrix()
+        features = np.asarray(self.stage_.transform(np.concatenate([self.cloud.sh_dc, ac], axis=1)
+                                                    if self.stage_.uses_dc else ac))
+        if self.template.color == "ycbcr" and self.stage_.ycbcr_applies(features.shape[1]):
+            features = qz.triplets_to_ycbcr(features)
+        return features
+
+    def _record_sh_chunks(self, stream: Bitstream, scale: float) -> None:
+        """Remember each SH feature's bytes (scaled to the whole cloud) at the QP a probe coded it with;
+        a chunk of several features (equal QPs) is shared equally among them."""
+        for name in stream.header["attributes"]["sh"]["chunks"]:
+            chunk = stream.chunk(name)
+            start, stop = chunk.meta["channels"]
+            for feature in range(start, stop):
+                self._sh_points.setdefault(feature, {})[int(chunk.meta["qp"])] = \
+                    scale * len(chunk.data) / (stop - start)
+        self._sh_points.setdefault(-1, {})[int(stream.header["sh"]["features"])] = \
+            float(stream.attribute_sizes().get("sh_state", 0))
+
+    def _sh_rates(self, grid: np.ndarray) -> np.ndarray:
+        """Bytes of the water-filled SH features at each base QP of ``grid``: the sum over the features
+        kept of each one's bytes at its own QP (interpolated between the probe's), plus the stage's
+        side information (interpolated in the number kept). Water-filling drops features as the base QP
+        rises, which one curve over the base QP would smear between the probe's QPs."""
+        values = self._sh_values()
+        ranges, weights = np.ptp(values, axis=0), self.stage_.feature_weights()
+        curves: dict[int, np.ndarray] = {}
+        for feature, points in sorted(self._sh_points.items()):
+            if feature >= 0 and points:
+                qps = sorted(points)
+                curves[feature] = _interpolate_log(qps, np.array([points[q] for q in qps]), np.arange(0, 52))
+        state = sorted(self._sh_points.get(-1, {}).items())
+        out = np.zeros(grid.size)
+        for i, base in enumerate(grid):
+            qps = waterfill_qps(ranges, weights, int(base))
+            # a feature the probe never kept (only below its lowest QP) costs what the last measured one does
+            out[i] = sum(curves.get(f, curves[max(k for k in curves if k <= f)] if any(k <= f for k in curves)
+                                    else next(iter(curves.values())))[q] for f, q in enumerate(qps))
+            if state:
+                out[i] += float(np.interp(len(qps), [k for k, _ in state], [v for _, v in state]))
+        return out
 
     def _sensitivities(self, errors: dict[str, np.ndarray], bar: Any = None) -> dict[str, float]:
         """Rendered MSE per unit attribute MSE: renders of the cloud with one attribute of the probe's
@@ -513,13 +574,12 @@ class RateController:
         return Outcome(stream, plan, target, len(trials), dict(self.seconds_), measured, trials)
 
     def _first_plan(self, target: Target) -> Plan:
-        """The hull's plan for ``target``; a PSNR target aims at the middle of its window when it can."""
-        if target.kind == "psnr":
-            try:
-                return self.plan(Target("psnr", target.value + PSNR_WINDOW / 2))
-            except TargetUnreachableError:
-                pass
-        return self.plan(target)
+        """The hull's plan for ``target``, aimed at the middle of its window when it can."""
+        middle = target.value + PSNR_WINDOW / 2 if target.kind == "psnr" else target.value * (1 - SIZE_TOLERANCE / 2)
+        try:
+            return self.plan(Target(target.kind, middle))
+        except TargetUnreachableError:
+            return self.plan(target)
 
     def _encode(self, plan: Plan, target: Target) -> Bitstream:
         """One real encode of ``plan``; the header records the target (the settings are in its rate point)."""
@@ -664,10 +724,17 @@ def _probe_rows(cloud: GaussianCloud) -> np.ndarray:
 
 
 def _interpolate_log(xs: Sequence[float], ys: np.ndarray, grid: np.ndarray) -> np.ndarray:
-    """Piecewise-linear in log(y) (y floored at a tiny value), extended along the end segments."""
+    """Monotone piecewise-cubic (PCHIP) in log(y) (y floored at a tiny value) between the points,
+    extended along the end segments (one point: a constant). A rate falls faster towards the QP at
+    which the codec stops coding detail than one straight segment in log(y) between probes says."""
+    from scipy.interpolate import PchipInterpolator
+
     xs = np.asarray(xs, dtype=np.float64)
     logs = np.log(np.maximum(np.asarray(ys, dtype=np.float64), 1e-12))
-    out = np.interp(grid, xs, logs)
+    grid = np.asarray(grid, dtype=np.float64)
+    if xs.size == 1:
+        return np.full(grid.shape, float(np.exp(logs[0])))
+    out = PchipInterpolator(xs, logs)(np.clip(grid, xs[0], xs[-1])) if xs.size > 2 else np.interp(grid, xs, logs)
     low, high = grid < xs[0], grid > xs[-1]
     out[low] = logs[0] + (grid[low] - xs[0]) * (logs[1] - logs[0]) / (xs[1] - xs[0])
     out[high] = logs[-1] + (grid[high] - xs[-1]) * (logs[-1] - logs[-2]) / (xs[-1] - xs[-2])
@@ -688,6 +755,19 @@ def _attribute_mse(name: str, source: GaussianCloud, decoded: GaussianCloud, ycb
     else:
         a, b = source.ac_matrix(), decoded.ac_matrix()
     return float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
+
+
+def _extreme_rows(cloud: GaussianCloud, sh_values: np.ndarray | None) -> np.ndarray:
+    """The rows holding each coded channel's minimum and maximum (``sh_values``: the SH features as
+    coded): with them a probe's quantiser ranges, and so its steps and water-filled QPs, are the
+    whole cloud's (a quantiser spans its data's range)."""
+    columns = [ATTRIBUTES[name].forward(cloud, False) for name in ATTRIBUTES if name not in ("positions", "sh_dc")]
+    columns.append(cloud.sh_dc)
+    columns.append(qz.triplets_to_ycbcr(cloud.sh_dc))
+    if sh_values is not None:
+        columns.append(sh_values)
+    rows = [np.concatenate([np.argmin(v, axis=0), np.argmax(v, axis=0)]) for v in columns]
+    return np.unique(np.concatenate(rows))
 
 
 def _with_decoded(cloud: GaussianCloud, name: str, rows: np.ndarray, decoded: GaussianCloud) -> GaussianCloud:
