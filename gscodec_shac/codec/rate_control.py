@@ -45,6 +45,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -57,7 +58,7 @@ from gscodec_shac.codec.allocation import waterfill_qps
 from gscodec_shac.codec.attributes import ATTRIBUTES
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.decoder import Decoder
-from gscodec_shac.codec.encoder import Encoder
+from gscodec_shac.codec.encoder import Encoder, default_workers
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode, set_order
 from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
 from gscodec_shac.errors import GscodecError, ValidationError
@@ -391,14 +392,17 @@ class RateController:
         return out
 
     def _position_model(self, sensitivity: float) -> AttributeModel:
-        """Exact set-coding bytes per bit depth; rendered MSE from the quantisation step."""
+        """Exact set-coding bytes per bit depth (the depths in threads: LZMA and the sort release the
+        GIL); rendered MSE from the quantisation step."""
         values = qz.log_transform(self.cloud.means)
-        sizes, mses = [], []
-        for bits in POSITION_BITS:
+
+        def coded_bytes(bits: int) -> int:
             quantizer = qz.Quantizer.fit(values, bits)
-            codes = np.sort(morton_encode(quantizer.quantize(values)))
-            sizes.append(len(encode_sorted_codes(codes)))
-            mses.append(sensitivity * _position_step_mse(self.cloud, bits))
+            return len(encode_sorted_codes(np.sort(morton_encode(quantizer.quantize(values)))))
+
+        with ThreadPoolExecutor(self.workers or default_workers()) as pool:
+            sizes = list(pool.map(coded_bytes, POSITION_BITS))
+        mses = [sensitivity * _position_step_mse(self.cloud, bits) for bits in POSITION_BITS]
         return AttributeModel("positions", np.array(POSITION_BITS), np.array(sizes, float), np.array(mses))
 
     def _rendered_mse(self, cloud: GaussianCloud) -> float:
