@@ -121,3 +121,24 @@ def test_cli_target_writes_nothing_when_unreachable(tmp_path, small_cloud, capsy
     assert "cannot be combined with a target" in capsys.readouterr().err
     assert main(["encode", str(ply), str(out), "--target-bpg", "250", "--json", "-q"]) == 0
     assert 0.97 * 250 <= 8 * out.stat().st_size / small_cloud.num_gaussians <= 250
+
+
+def test_probe_of_a_large_cloud_spans_every_coded_channel():
+    """A probe (a share of the cloud plus the Gaussians at each channel's extremes) quantises over the
+    whole cloud's ranges, so its steps and water-filled QPs are the ones the real encode uses."""
+    from gscodec_shac.codec.attributes import ATTRIBUTES
+    from gscodec_shac.codec.rate_control import PROBE_MIN, _extreme_rows, _probe_rows
+    from gscodec_shac.synthetic import make_synthetic_scene
+
+    cloud = make_synthetic_scene(PROBE_MIN + 5_000, seed=1, n_cameras=1, width=8, height=8).cloud
+    runs = _probe_rows(cloud)
+    assert runs.size < cloud.num_gaussians
+    features = cloud.ac_matrix()[:, :5]
+    rows = np.union1d(runs, _extreme_rows(cloud, features))
+    for ycbcr in (False, True):
+        for name in ("rotation", "scale", "opacity", "sh_dc"):
+            values = ATTRIBUTES[name].forward(cloud, ycbcr)
+            assert np.array_equal(values[rows].min(axis=0), values.min(axis=0)), name
+            assert np.array_equal(values[rows].max(axis=0), values.max(axis=0)), name
+    assert np.array_equal(np.ptp(features[rows], axis=0), np.ptp(features, axis=0))
+    assert not np.array_equal(np.ptp(features[runs], axis=0), np.ptp(features, axis=0))  # the runs alone do not
