@@ -9,6 +9,7 @@ from gscodec_shac.cli import main
 from gscodec_shac.codec import Decoder, Encoder, load_rate_point
 from gscodec_shac.codec.allocation import MAX_QP, waterfill_qps
 from gscodec_shac.codec.rate_control import (
+    PSNR_WINDOW,
     SIZE_TOLERANCE,
     RateController,
     Target,
@@ -84,9 +85,15 @@ def test_more_bytes_buy_more_quality(controller, small_cloud):
     assert high.measured_psnr > low.measured_psnr + 3
 
 
-def test_psnr_target_is_met(controller):
-    outcome = controller.encode(Target("psnr", 38.0))
-    assert outcome.measured_psnr >= 38.0
+@pytest.mark.parametrize("psnr", [34.0, 38.0])
+def test_psnr_target_lands_within_its_window(controller, psnr):
+    outcome = controller.encode(Target("psnr", psnr))
+    assert psnr <= outcome.measured_psnr <= psnr + PSNR_WINDOW
+    assert outcome.measured_psnr == pytest.approx(controller.measured_psnr(outcome.stream))
+    trials = outcome.summary()["trials"]
+    assert len(trials) == outcome.encodes <= controller.max_encodes
+    assert trials[-1]["bytes"] == len(outcome.stream.to_bytes())  # the last encode is the one kept
+    assert all({"predicted_psnr", "model_psnr", "measured_psnr", "predicted_bytes"} <= set(t) for t in trials)
 
 
 def test_unreachable_targets_name_the_reachable_limit(controller):
@@ -97,10 +104,10 @@ def test_unreachable_targets_name_the_reachable_limit(controller):
 
 
 def test_same_input_and_target_give_the_same_bytes(small_scene):
-    target = Target("bytes", 200 * small_scene.cloud.num_gaussians / 8)
-    first = RateController(small_scene.cloud, views=small_scene.cameras, workers=1).fit().encode(target)
-    again = RateController(small_scene.cloud, views=small_scene.cameras, workers=2).fit().encode(target)
-    assert first.stream.to_bytes() == again.stream.to_bytes()
+    first = RateController(small_scene.cloud, views=small_scene.cameras, workers=1).fit()
+    again = RateController(small_scene.cloud, views=small_scene.cameras, workers=2).fit()
+    for target in (Target("bytes", 200 * small_scene.cloud.num_gaussians / 8), Target("psnr", 36.0)):
+        assert first.encode(target).stream.to_bytes() == again.encode(target).stream.to_bytes()
 
 
 def test_cli_target_writes_nothing_when_unreachable(tmp_path, small_cloud, capsys):
@@ -114,3 +121,24 @@ def test_cli_target_writes_nothing_when_unreachable(tmp_path, small_cloud, capsy
     assert "cannot be combined with a target" in capsys.readouterr().err
     assert main(["encode", str(ply), str(out), "--target-bpg", "250", "--json", "-q"]) == 0
     assert 0.97 * 250 <= 8 * out.stat().st_size / small_cloud.num_gaussians <= 250
+
+
+def test_probe_of_a_large_cloud_spans_every_coded_channel():
+    """A probe (a share of the cloud plus the Gaussians at each channel's extremes) quantises over the
+    whole cloud's ranges, so its steps and water-filled QPs are the ones the real encode uses."""
+    from gscodec_shac.codec.attributes import ATTRIBUTES
+    from gscodec_shac.codec.rate_control import PROBE_MIN, _extreme_rows, _probe_rows
+    from gscodec_shac.synthetic import make_synthetic_scene
+
+    cloud = make_synthetic_scene(PROBE_MIN + 5_000, seed=1, n_cameras=1, width=8, height=8).cloud
+    runs = _probe_rows(cloud)
+    assert runs.size < cloud.num_gaussians
+    features = cloud.ac_matrix()[:, :5]
+    rows = np.union1d(runs, _extreme_rows(cloud, features))
+    for ycbcr in (False, True):
+        for name in ("rotation", "scale", "opacity", "sh_dc"):
+            values = ATTRIBUTES[name].forward(cloud, ycbcr)
+            assert np.array_equal(values[rows].min(axis=0), values.min(axis=0)), name
+            assert np.array_equal(values[rows].max(axis=0), values.max(axis=0)), name
+    assert np.array_equal(np.ptp(features[rows], axis=0), np.ptp(features, axis=0))
+    assert not np.array_equal(np.ptp(features[runs], axis=0), np.ptp(features, axis=0))  # the runs alone do not

@@ -12,24 +12,32 @@ each attribute on its own:
 
 * **rate** ``R_a(x)`` and **attribute error** ``e_a(x)``: real encodes and decodes of a
   *probe* (a sample of the cloud made of a few runs along its Morton order, so it keeps
-  the neighbourhoods the grid codecs exploit) at a handful of QPs, all attributes at once,
-  scaled to the whole cloud and interpolated in the log domain between probe QPs;
-  position bits are measured exactly on the whole cloud (set coding is cheap);
+  the neighbourhoods the grid codecs exploit, plus the Gaussians holding each coded
+  channel's extremes, so its quantiser ranges are the whole cloud's) at a handful of QPs,
+  all attributes at once, scaled to the whole cloud and interpolated (PCHIP in the log
+  domain) between probe QPs; the water-filled SH features' rate is summed over the
+  features kept at each base QP, each at its own QP; position bits are measured exactly
+  on the whole cloud (set coding is cheap);
 * **render sensitivity** ``k_a``: the rendered MSE per unit attribute MSE, from renders of
-  the cloud with that attribute perturbed by noise of the size the codec leaves, on a few
-  views (the scene's cameras, else orbit views), against renders of the uncompressed cloud;
+  the cloud with that attribute of the probe's Gaussians as the codec decoded it (QP 30),
+  on a few views (the scene's cameras, else orbit views), against renders of the
+  uncompressed cloud;
 * **pruning**: the rendered MSE of the cloud without its Gaussians below each opacity
   threshold (exact renders); pruning keeps a share ``f`` of the Gaussians and scales every
   attribute's bytes by ``f`` (positions: their gaps grow, ``+log2(1/f)`` bits each).
 
 The predicted rendered error is ``D = sum_a k_a e_a(x_a)`` (PSNR against the uncompressed
 model, images in [0, 1]). A Lagrangian search (per attribute ``min R_a + lambda D_a``)
-traces the lower convex hull of (size, D) and picks the point meeting the target; one real
-encode confirms it, and the controller corrects its rate model with what the encode
-measured and re-encodes until a size target is met (at most ``max_encodes`` encodes;
-unchanged chunks are taken from a cache). A size target is never exceeded; a target
-outside the reachable range raises :class:`TargetUnreachableError` naming the reachable
-limit.
+traces the lower convex hull of (size, D) and picks the point meeting the middle of the
+target's window; one real encode confirms it, and the controller corrects its models with
+what the encode measured and re-encodes until the target is met (at most ``max_encodes``
+encodes; unchanged chunks are taken from a cache): a size within 3% under it (each
+attribute's bytes as measured), a PSNR within 0.3 dB above it (the prediction error,
+measured minus predicted PSNR, interpolated between the encodes so far, brackets the
+next plan on the hull of the QPs). ``Outcome.trials`` records the predicted and measured
+bytes and PSNR of every encode. A size target is never exceeded, nor a PSNR target
+undershot; a target outside the reachable range raises :class:`TargetUnreachableError`
+naming the reachable limit.
 """
 
 from __future__ import annotations
@@ -37,6 +45,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -45,9 +54,11 @@ from tqdm.auto import tqdm
 
 from gscodec_shac.camera import Camera, orbit_views
 from gscodec_shac.codec import quantize as qz
+from gscodec_shac.codec.allocation import waterfill_qps
+from gscodec_shac.codec.attributes import ATTRIBUTES
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.decoder import Decoder
-from gscodec_shac.codec.encoder import Encoder
+from gscodec_shac.codec.encoder import Encoder, default_workers
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode, set_order
 from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
 from gscodec_shac.errors import GscodecError, ValidationError
@@ -58,7 +69,7 @@ from gscodec_shac.shac.base import ShStage, make_stage
 #: The template rate point of SHAC-auto.
 TEMPLATE = "shac_auto:template"
 #: Bumped when the controller's choices change for the same input (RD sweeps key their rows on it).
-VERSION = 3
+VERSION = 4
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
 #: QPs at which the probe is encoded; the models interpolate between them (and extrapolate).
@@ -72,11 +83,15 @@ PROBE_MIN = 20_000
 #: ... or this share of the cloud, in this many runs along the Morton order.
 PROBE_SHARE = 1 / 16
 PROBE_RUNS = 4
+#: The probe QP whose decoded errors measure the render sensitivities.
+SENSITIVITY_QP = 30
 #: Views (and their width) the render sensitivities are measured on.
 CALIBRATION_VIEWS = 6
 CALIBRATION_WIDTH = 192
-#: A size target is met when the file is within this share under it.
+#: A size target is met when the file is within this share under it ...
 SIZE_TOLERANCE = 0.03
+#: ... a PSNR target when the measured PSNR is within this many dB above it.
+PSNR_WINDOW = 0.3
 
 
 class TargetUnreachableError(GscodecError):
@@ -158,6 +173,8 @@ class Outcome:
     encodes: int
     seconds: dict[str, float] = field(default_factory=dict)
     measured_psnr: float | None = None
+    #: One row per real encode: predicted and measured bytes and PSNR (the models' prediction error).
+    trials: list[dict[str, float]] = field(default_factory=list)
 
     def summary(self) -> dict[str, Any]:
         """What ``encode --json`` and the header report about the choice."""
@@ -172,6 +189,8 @@ class Outcome:
         }
         if self.measured_psnr is not None:
             out["measured_psnr"] = round(self.measured_psnr, 3)
+        if self.trials:
+            out["trials"] = [{k: round(v, 3) for k, v in row.items()} for row in self.trials]
         return out
 
 
@@ -221,7 +240,8 @@ class RateController:
         self._cache: dict = {}
         self._references: list[np.ndarray] = []
         self._exact: dict[str, dict[int, float]] = {}
-        self._error_fix = 1.0
+        self._probe_decoded: tuple[np.ndarray, GaussianCloud] | None = None  # (rows, decoded) at SENSITIVITY_QP
+        self._sh_points: dict[int, dict[int, float]] = {}  # SH feature (-1: side information) -> {QP: bytes}
 
     # -------------------------------------------------------------- fit
     def fit(self) -> "RateController":
@@ -250,9 +270,9 @@ class RateController:
             self.seconds_["calibrate"] = time.perf_counter() - tic
         grid = np.arange(0, 52)
         for name in rates:
+            rate = self._sh_rates(grid) if name == "sh" else _interpolate_log(PROBE_QPS, rates[name], grid)
             self.models_[name] = AttributeModel(
-                name, grid, _interpolate_log(PROBE_QPS, rates[name], grid),
-                sensitivity[name] * _interpolate_log(PROBE_QPS, errors[name], grid))
+                name, grid, rate, sensitivity[name] * _interpolate_log(PROBE_QPS, errors[name], grid))
         self.models_["positions"] = self._position_model(sensitivity["positions"])
         self.overhead_ = overhead
         return self
@@ -273,7 +293,11 @@ class RateController:
     def _probe(self, bar: Any = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
         """Per attribute, bytes (scaled to the whole cloud) and attribute MSE at each probe QP
         (``bar``: a progress bar advanced once per probe)."""
-        probe = _probe_sample(self.cloud)
+        rows = _probe_rows(self.cloud)
+        if rows.size < self.cloud.num_gaussians:
+            rows = np.union1d(rows, _extreme_rows(self.cloud, self._sh_values()))
+        self._sh_points = {}
+        probe = self.cloud.select(rows)
         scale = self.cloud.num_gaussians / probe.num_gaussians
         names = [a for a in QP_ATTRIBUTES if a != "sh" or self.stage_ is not None]
         rates = {a: np.zeros(len(PROBE_QPS)) for a in names}
@@ -289,20 +313,74 @@ class RateController:
             for a in names:
                 rates[a][i] = scale * sizes.get(a, 0) + (sizes.get("sh_state", 0) if a == "sh" else 0)
                 errors[a][i] = _attribute_mse(a, source, decoded, point.color == "ycbcr")
+            if qp == SENSITIVITY_QP:
+                self._probe_decoded = (rows[encoder.order_], decoded)
+            if "sh" in names:
+                self._record_sh_chunks(stream, scale)
             overhead = max(overhead, sizes.get("header", 0))
             if bar is not None:
                 bar.update(1)
         return rates, errors, overhead
 
+    def _sh_values(self) -> np.ndarray | None:
+        """The whole cloud's SH features as the encoder quantises them (YCbCr triplets where it applies)."""
+        if self.stage_ is None:
+            return None
+        ac = self.cloud.ac_matrix()
+        features = np.asarray(self.stage_.transform(np.concatenate([self.cloud.sh_dc, ac], axis=1)
+                                                    if self.stage_.uses_dc else ac))
+        if self.template.color == "ycbcr" and self.stage_.ycbcr_applies(features.shape[1]):
+            features = qz.triplets_to_ycbcr(features)
+        return features
+
+    def _record_sh_chunks(self, stream: Bitstream, scale: float) -> None:
+        """Remember each SH feature's bytes (scaled to the whole cloud) at the QP a probe coded it with;
+        a chunk of several features (equal QPs) is shared equally among them."""
+        for name in stream.header["attributes"]["sh"]["chunks"]:
+            chunk = stream.chunk(name)
+            start, stop = chunk.meta["channels"]
+            for feature in range(start, stop):
+                self._sh_points.setdefault(feature, {})[int(chunk.meta["qp"])] = \
+                    scale * len(chunk.data) / (stop - start)
+        self._sh_points.setdefault(-1, {})[int(stream.header["sh"]["features"])] = \
+            float(stream.attribute_sizes().get("sh_state", 0))
+
+    def _sh_rates(self, grid: np.ndarray) -> np.ndarray:
+        """Bytes of the water-filled SH features at each base QP of ``grid``: the sum over the features
+        kept of each one's bytes at its own QP (interpolated between the probe's), plus the stage's
+        side information (interpolated in the number kept). Water-filling drops features as the base QP
+        rises, which one curve over the base QP would smear between the probe's QPs."""
+        values = self._sh_values()
+        ranges, weights = np.ptp(values, axis=0), self.stage_.feature_weights()
+        curves: dict[int, np.ndarray] = {}
+        for feature, points in sorted(self._sh_points.items()):
+            if feature >= 0 and points:
+                qps = sorted(points)
+                curves[feature] = _interpolate_log(qps, np.array([points[q] for q in qps]), np.arange(0, 52))
+        state = sorted(self._sh_points.get(-1, {}).items())
+        out = np.zeros(grid.size)
+        for i, base in enumerate(grid):
+            qps = waterfill_qps(ranges, weights, int(base))
+            # a feature the probe never kept (only below its lowest QP) costs what the last measured one does
+            out[i] = sum(curves.get(f, curves[max(k for k in curves if k <= f)] if any(k <= f for k in curves)
+                                    else next(iter(curves.values())))[q] for f, q in enumerate(qps))
+            if state:
+                out[i] += float(np.interp(len(qps), [k for k, _ in state], [v for _, v in state]))
+        return out
+
     def _sensitivities(self, errors: dict[str, np.ndarray], bar: Any = None) -> dict[str, float]:
-        """Rendered MSE per unit attribute MSE: renders with each attribute perturbed by noise (``bar``: a
+        """Rendered MSE per unit attribute MSE: renders of the cloud with one attribute of the probe's
+        Gaussians replaced by what the codec decoded at :data:`SENSITIVITY_QP` (its errors are
+        correlated along the grid, as in a real encode, where independent noise of the same size
+        renders less error), divided by that error spread over the whole cloud (``bar``: a
         progress bar advanced once per attribute)."""
-        rng = np.random.default_rng(0)
-        middle = PROBE_QPS.index(30)
+        middle = PROBE_QPS.index(SENSITIVITY_QP)
+        rows, decoded = self._probe_decoded
+        share = rows.size / self.cloud.num_gaussians
         out = {}
         for name, mse in errors.items():
-            sigma = math.sqrt(max(float(mse[middle]), 1e-12))
-            out[name] = self._rendered_mse(_perturbed(self.cloud, name, sigma, rng)) / sigma**2
+            error = max(float(mse[middle]), 1e-12) * share  # the probe's error spread over the whole cloud
+            out[name] = self._rendered_mse(_with_decoded(self.cloud, name, rows, decoded)) / error
             if bar is not None:
                 bar.update(1)
         bits = 12
@@ -314,14 +392,17 @@ class RateController:
         return out
 
     def _position_model(self, sensitivity: float) -> AttributeModel:
-        """Exact set-coding bytes per bit depth; rendered MSE from the quantisation step."""
+        """Exact set-coding bytes per bit depth (the depths in threads: LZMA and the sort release the
+        GIL); rendered MSE from the quantisation step."""
         values = qz.log_transform(self.cloud.means)
-        sizes, mses = [], []
-        for bits in POSITION_BITS:
+
+        def coded_bytes(bits: int) -> int:
             quantizer = qz.Quantizer.fit(values, bits)
-            codes = np.sort(morton_encode(quantizer.quantize(values)))
-            sizes.append(len(encode_sorted_codes(codes)))
-            mses.append(sensitivity * _position_step_mse(self.cloud, bits))
+            return len(encode_sorted_codes(np.sort(morton_encode(quantizer.quantize(values)))))
+
+        with ThreadPoolExecutor(self.workers or default_workers()) as pool:
+            sizes = list(pool.map(coded_bytes, POSITION_BITS))
+        mses = [sensitivity * _position_step_mse(self.cloud, bits) for bits in POSITION_BITS]
         return AttributeModel("positions", np.array(POSITION_BITS), np.array(sizes, float), np.array(mses))
 
     def _rendered_mse(self, cloud: GaussianCloud) -> float:
@@ -354,18 +435,22 @@ class RateController:
                 f"(about {best:.2f} dB against the uncompressed model)")
         return min(feasible, key=lambda p: (p.predicted_bytes, p.predicted_mse))
 
-    def _hull(self) -> list[Plan]:
+    def _hull(self, prune: int | None = None, positions: int | None = None) -> list[Plan]:
         """Plans along the lower convex hull of (bytes, rendered MSE): one per Lagrange multiplier and
-        pruning threshold (pruning scales every attribute's bytes by the share kept)."""
+        pruning threshold (pruning scales every attribute's bytes by the share kept); ``prune`` (an
+        index into :attr:`prune_`) and ``positions`` (bits) fix those settings."""
         plans: dict[tuple, Plan] = {}
-        positions = self.models_["positions"]
-        for prune, (_, kept, _) in enumerate(self.prune_):
-            position_bytes = np.array([self._position_bytes(int(b), prune) for b in positions.choices])
+        model = self.models_["positions"]
+        for index, (_, kept, _) in enumerate(self.prune_):
+            if prune is not None and index != prune:
+                continue
+            position_bytes = np.array([self._position_bytes(int(b), index) for b in model.choices])
             for lam in np.geomspace(1e-3, 1e15, 400):
                 settings = {name: int(m.choices[m.best(lam / kept)]) for name, m in self.models_.items()
                             if name != "positions"}
-                settings["positions"] = int(positions.choices[np.argmin(position_bytes + lam * positions.mse)])
-                settings["prune"] = prune
+                settings["positions"] = positions if positions is not None else \
+                    int(model.choices[np.argmin(position_bytes + lam * model.mse)])
+                settings["prune"] = index
                 key = tuple(sorted(settings.items()))
                 if key not in plans:
                     plans[key] = self._predict(settings)
@@ -378,7 +463,7 @@ class RateController:
         size = self._overhead_bytes() + self._position_bytes(settings["positions"], prune) + sum(
             kept * self._bytes(name, settings[name]) for name in self.models_ if name != "positions")
         mse = prune_mse + sum(m.mse[np.searchsorted(m.choices, settings[n])] for n, m in self.models_.items())
-        return Plan(settings, size, mse * self._error_fix, self._rate_point(settings))
+        return Plan(settings, size, mse, self._rate_point(settings))
 
     def _position_bytes(self, bits: int, prune: int) -> float:
         """Set-coded positions at ``bits`` after pruning: measured, else the unpruned size scaled by the
@@ -439,46 +524,66 @@ class RateController:
         """Plan, encode, correct and re-encode until the target is met (see module docstring).
 
         After the first encode the position bits and the pruning stay fixed (changing them
-        re-sorts the grid, so no coded chunk could be reused); the QPs move by single steps, the cheapest error per
-        byte first, with the rate and error models scaled by what the last encode measured.
+        re-sorts the grid, so no coded chunk could be reused). A size target moves the QPs by
+        single steps, the cheapest error per byte first, with the rate model scaled by what the
+        encodes measured; a PSNR target walks the hull of the remaining QPs with the predicted
+        PSNR corrected by the measured one (:meth:`_next_for_quality`).
         """
         if not self.models_:
             self.fit()
         tic = time.perf_counter()
-        self._exact, self._error_fix = {}, 1.0  # bytes measured per attribute and setting; measured / predicted MSE
-        plan: Plan | None = self.plan(target)
+        self._exact = {}  # bytes measured per attribute and setting
+        plan: Plan | None = self._first_plan(target)
         tried: set[tuple] = set()
         best: tuple[Bitstream, Plan, float | None] | None = None
-        encodes = 0
+        trials: list[dict[str, float]] = []
+        measured_plans: list[tuple[Plan, int, float]] = []  # (plan, bytes, measured PSNR) of a PSNR target
         bar = tqdm(total=self.max_encodes, desc="rate control: encode", unit="encode", disable=not self.progress,
                    leave=False)
-        while plan is not None and encodes < self.max_encodes and _key(plan) not in tried:
+        while plan is not None and len(trials) < self.max_encodes and _key(plan) not in tried:
             tried.add(_key(plan))
+            started = time.perf_counter()
+            expected = self._corrected_psnr(plan, measured_plans) if target.kind == "psnr" else plan.predicted_psnr
             stream = self._encode(plan, target)
-            encodes += 1
             bar.update(1)
             size = stream.total_bytes()
+            trials.append({"predicted_bytes": plan.predicted_bytes, "bytes": size,
+                           "model_psnr": plan.predicted_psnr, "predicted_psnr": expected})
             self._learn(plan, stream)
             if target.kind == "bytes":
                 if size <= target.value and (best is None or size > best[0].total_bytes()):
                     best = (stream, plan, None)
                 if (1 - SIZE_TOLERANCE) * target.value <= size <= target.value:
-                    break
-                plan = self._adjust(plan, limit=target.value * (1 - SIZE_TOLERANCE / 2))
+                    plan = None
+                else:
+                    plan = self._adjust(plan, limit=target.value * (1 - SIZE_TOLERANCE / 2))
             else:
                 measured = self.measured_psnr(stream)
-                self._error_fix *= 10 ** ((plan.predicted_psnr - measured) / 10)
+                trials[-1]["measured_psnr"] = measured
+                measured_plans.append((plan, size, measured))
                 if measured >= target.value and (best is None or size < best[0].total_bytes()):
                     best = (stream, plan, measured)
-                plan = self._adjust(plan, max_mse=10 ** (-target.value / 10))
+                if target.value <= measured <= target.value + PSNR_WINDOW:
+                    plan = None
+                else:
+                    plan = self._next_for_quality(target, measured_plans, tried)
+            trials[-1]["seconds"] = time.perf_counter() - started
         bar.close()
         self.seconds_["encode"] = time.perf_counter() - tic
         if best is None:
-            raise TargetUnreachableError(f"no encode met {target.describe()} in {encodes} tries")
+            raise TargetUnreachableError(f"no encode met {target.describe()} in {len(trials)} tries")
         stream, plan, measured = best
         if measured is None:
             measured = self.measured_psnr(stream)
-        return Outcome(stream, plan, target, encodes, dict(self.seconds_), measured)
+        return Outcome(stream, plan, target, len(trials), dict(self.seconds_), measured, trials)
+
+    def _first_plan(self, target: Target) -> Plan:
+        """The hull's plan for ``target``, aimed at the middle of its window when it can."""
+        middle = target.value + PSNR_WINDOW / 2 if target.kind == "psnr" else target.value * (1 - SIZE_TOLERANCE / 2)
+        try:
+            return self.plan(Target(target.kind, middle))
+        except TargetUnreachableError:
+            return self.plan(target)
 
     def _encode(self, plan: Plan, target: Target) -> Bitstream:
         """One real encode of ``plan``; the header records the target (the settings are in its rate point)."""
@@ -489,27 +594,71 @@ class RateController:
                                          "template": self.template.name}
         return stream
 
-    def _adjust(self, plan: Plan, *, limit: float = math.inf,
-                max_mse: float = math.inf) -> Plan | None:
-        """The QPs moved step by step (position bits fixed) until the corrected prediction meets the
-        target: ``limit`` bytes as closely as possible from below, or ``max_mse`` at the fewest bytes."""
+    @staticmethod
+    def _corrected_psnr(plan: Plan, measured: Sequence[tuple[Plan, int, float]]) -> float:
+        """``plan``'s predicted PSNR plus the prediction error (measured - predicted dB) of the encodes so
+        far, interpolated in log bytes between them (the nearest one's beyond them)."""
+        if not measured:
+            return plan.predicted_psnr
+        rows = sorted((math.log(size), psnr - done.predicted_psnr) for done, size, psnr in measured)
+        logs, errors = zip(*rows)
+        return plan.predicted_psnr + float(np.interp(math.log(max(plan.predicted_bytes, 1.0)), logs, errors))
+
+    def _next_for_quality(self, target: Target, measured: Sequence[tuple[Plan, int, float]],
+                          tried: set[tuple]) -> Plan | None:
+        """The next plan for a PSNR target: on the hull of the QPs (position bits and pruning of the first
+        encode), between the largest encode below the target and the smallest one above its window,
+        the smallest whose corrected PSNR reaches the window's middle (else the best one); None when no
+        untried plan lies between them."""
+        low = max((size for _, size, psnr in measured if psnr < target.value), default=-math.inf)
+        high = min((size for _, size, psnr in measured if psnr > target.value + PSNR_WINDOW), default=math.inf)
+        first = measured[0][0].settings
+        plans = self._hull(prune=first.get("prune", 0), positions=first["positions"])
+        for plan, size, psnr in measured:  # single QP steps from the bracket's ends into it
+            if size == low or size == high:
+                plans += self._chain(plan, cheaper=size == high, stop=low if size == high else high)
+        candidates = [(p.predicted_bytes, self._corrected_psnr(p, measured), p) for p in plans
+                      if low < p.predicted_bytes < high and _key(p) not in tried]
+        if not candidates:
+            return None
+        aim = target.value + PSNR_WINDOW / 2
+        reaching = [c for c in candidates if c[1] >= aim]
+        if reaching:
+            return min(reaching, key=lambda c: (c[0], -c[1]))[2]
+        return max(candidates, key=lambda c: (c[1], -c[0]))[2]
+
+    def _chain(self, plan: Plan, *, cheaper: bool, stop: float, steps: int = 64) -> list[Plan]:
+        """Plans one :meth:`_step` apart from ``plan`` (fewer bytes when ``cheaper``) until the
+        predicted bytes pass ``stop`` (or after ``steps`` steps)."""
+        out: list[Plan] = []
+        current: Plan | None = self._predict(plan.settings)
+        for _ in range(steps):
+            current = self._step(current, cheaper=cheaper)
+            if current is None:
+                break
+            out.append(current)
+            if (current.predicted_bytes <= stop) if cheaper else (current.predicted_bytes >= stop):
+                break
+        return out
+
+    def _adjust(self, plan: Plan, *, limit: float) -> Plan | None:
+        """The QPs moved step by step (position bits fixed) until the corrected prediction is within
+        ``limit`` bytes, as closely as possible from below."""
         current = self._predict(plan.settings)
-        while current.predicted_bytes > limit or current.predicted_mse > max_mse:  # too big or too poor
-            step = self._step(current, cheaper=current.predicted_bytes > limit)
+        while current.predicted_bytes > limit:  # too big
+            step = self._step(current, cheaper=True)
             if step is None:
                 return None
             current = step
-        while True:  # spend what is left, or save what the quality allows
-            step = self._step(current, cheaper=not math.isfinite(limit), limit=limit, max_mse=max_mse)
+        while True:  # spend what is left
+            step = self._step(current, cheaper=False, limit=limit)
             if step is None:
                 return current
             current = step
 
-    def _step(self, plan: Plan, *, cheaper: bool, limit: float = math.inf,
-              max_mse: float = math.inf) -> Plan | None:
+    def _step(self, plan: Plan, *, cheaper: bool, limit: float = math.inf) -> Plan | None:
         """One QP step of one attribute: the least error added per byte saved (``cheaper``), or the
-        most error removed per byte spent; only steps whose prediction stays within ``limit`` bytes and
-        ``max_mse``."""
+        most error removed per byte spent; only steps whose prediction stays within ``limit`` bytes."""
         moves = []
         for name, model in self.models_.items():
             if name == "positions":
@@ -524,7 +673,7 @@ class RateController:
                 moves.append((d_mse / abs(d_bytes), name, int(model.choices[j])))
         for _, name, value in sorted(moves):
             step = self._predict({**plan.settings, name: value})
-            if step.predicted_bytes <= limit and step.predicted_mse <= max_mse:
+            if step.predicted_bytes <= limit:
                 return step
         return None
 
@@ -564,25 +713,32 @@ def _calibration_views(views: list[Camera]) -> list[Camera]:
     return out
 
 
-def _probe_sample(cloud: GaussianCloud) -> GaussianCloud:
-    """A few runs of the cloud along its Morton order (all of a small cloud)."""
+def _probe_rows(cloud: GaussianCloud) -> np.ndarray:
+    """Rows of a few runs of the cloud along its Morton order (all of a small cloud), ascending."""
     n = cloud.num_gaussians
     size = min(n, max(PROBE_MIN, int(n * PROBE_SHARE)))
     if size == n:
-        return cloud
+        return np.arange(n)
     values = qz.log_transform(cloud.means)
     order = set_order(qz.Quantizer.fit(values, 16).quantize(values))
     run = size // PROBE_RUNS
     starts = np.linspace(0, n - run, PROBE_RUNS).round().astype(np.int64)
     rows = np.concatenate([order[s : s + run] for s in starts])
-    return cloud.select(np.sort(rows))
+    return np.sort(rows)
 
 
 def _interpolate_log(xs: Sequence[float], ys: np.ndarray, grid: np.ndarray) -> np.ndarray:
-    """Piecewise-linear in log(y) (y floored at a tiny value), extended along the end segments."""
+    """Monotone piecewise-cubic (PCHIP) in log(y) (y floored at a tiny value) between the points,
+    extended along the end segments (one point: a constant). A rate falls faster towards the QP at
+    which the codec stops coding detail than one straight segment in log(y) between probes says."""
+    from scipy.interpolate import PchipInterpolator
+
     xs = np.asarray(xs, dtype=np.float64)
     logs = np.log(np.maximum(np.asarray(ys, dtype=np.float64), 1e-12))
-    out = np.interp(grid, xs, logs)
+    grid = np.asarray(grid, dtype=np.float64)
+    if xs.size == 1:
+        return np.full(grid.shape, float(np.exp(logs[0])))
+    out = PchipInterpolator(xs, logs)(np.clip(grid, xs[0], xs[-1])) if xs.size > 2 else np.interp(grid, xs, logs)
     low, high = grid < xs[0], grid > xs[-1]
     out[low] = logs[0] + (grid[low] - xs[0]) * (logs[1] - logs[0]) / (xs[1] - xs[0])
     out[high] = logs[-1] + (grid[high] - xs[-1]) * (logs[-1] - logs[-2]) / (xs[-1] - xs[-2])
@@ -605,23 +761,30 @@ def _attribute_mse(name: str, source: GaussianCloud, decoded: GaussianCloud, ycb
     return float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
 
 
-def _perturbed(cloud: GaussianCloud, name: str, sigma: float, rng: np.random.Generator) -> GaussianCloud:
-    """``cloud`` with Gaussian noise of std ``sigma`` on one attribute, in its coded domain."""
-    def noise(shape: tuple[int, ...]) -> np.ndarray:
-        return rng.normal(0.0, sigma, size=shape)
+def _extreme_rows(cloud: GaussianCloud, sh_values: np.ndarray | None) -> np.ndarray:
+    """The rows holding each coded channel's minimum and maximum (``sh_values``: the SH features as
+    coded): with them a probe's quantiser ranges, and so its steps and water-filled QPs, are the
+    whole cloud's (a quantiser spans its data's range)."""
+    columns = [ATTRIBUTES[name].forward(cloud, False) for name in ATTRIBUTES if name not in ("positions", "sh_dc")]
+    columns.append(cloud.sh_dc)
+    columns.append(qz.triplets_to_ycbcr(cloud.sh_dc))
+    if sh_values is not None:
+        columns.append(sh_values)
+    rows = [np.concatenate([np.argmin(v, axis=0), np.argmax(v, axis=0)]) for v in columns]
+    return np.unique(np.concatenate(rows))
 
-    if name == "opacity":
-        return cloud.replace(opacities=cloud.opacities + noise(cloud.opacities.shape))
-    if name == "scale":
-        return cloud.replace(scales=cloud.scales + noise(cloud.scales.shape))
-    if name == "rotation":
-        quats = qz.canonical_quaternions(cloud.quats) + noise(cloud.quats.shape)
-        return cloud.replace(quats=quats / np.maximum(np.linalg.norm(quats, axis=1, keepdims=True), 1e-12))
-    if name == "sh_dc":
-        ycc = qz.triplets_to_ycbcr(cloud.sh_dc) + noise(cloud.sh_dc.shape)
-        return cloud.replace(sh_dc=qz.triplets_from_ycbcr(ycc))
-    ac = cloud.ac_matrix()
-    return cloud.with_ac_matrix(ac + noise(ac.shape))
+
+def _with_decoded(cloud: GaussianCloud, name: str, rows: np.ndarray, decoded: GaussianCloud) -> GaussianCloud:
+    """``cloud`` with one attribute of ``rows`` replaced by the codec's decoded values (``decoded``'s rows
+    in the same order)."""
+    if name == "sh":
+        ac = cloud.ac_matrix().copy()
+        ac[rows] = decoded.ac_matrix()
+        return cloud.with_ac_matrix(ac)
+    field_name = {"opacity": "opacities", "scale": "scales", "rotation": "quats", "sh_dc": "sh_dc"}[name]
+    values = getattr(cloud, field_name).copy()
+    values[rows] = getattr(decoded, field_name)
+    return cloud.replace(**{field_name: values})
 
 
 def _quantised_positions(cloud: GaussianCloud, bits: int) -> GaussianCloud:
