@@ -50,8 +50,9 @@ def mean_psnr(images, references) -> float:
     return float(np.mean([psnr(np.clip(a, 0, 1), np.clip(b, 0, 1)) for a, b in zip(images, references)]))
 
 
-def stability(cloud, views, widths: list[int]) -> list[dict]:
-    """Top-half overlap and rank correlation of the importance at each width with the widest."""
+def stability(cloud, views, widths: list[int], eval_views, reference) -> list[dict]:
+    """Top-half overlap and rank correlation of the importance at each width with the widest, and the
+    PSNR (against the uncompressed model) of the cloud pruned to its most important half by it."""
     from scipy.stats import spearmanr
 
     out, ranks = [], {}
@@ -67,6 +68,8 @@ def stability(cloud, views, widths: list[int]) -> list[dict]:
         mine = set(most_important(ranks[row["width"]], np.arange(n), n // 2).tolist())
         row["top_half_overlap"] = len(best & mine) / len(best)
         row["spearman"] = float(spearmanr(ranks[row["width"]], ranks[top]).statistic)
+        half = cloud.select(np.array(sorted(mine)))
+        row["psnr_ref_half"] = mean_psnr(renders(half, eval_views), reference)
     return out
 
 
@@ -106,17 +109,18 @@ def main() -> None:
     importance = gaussian_importance(cloud, views)
     result["importance_cpu_s"] = time.process_time() - tic
     print(f"importance: {len(views)} views in {result['importance_cpu_s']:.1f} s CPU", flush=True)
-    if args.stability:
-        result["stability"] = stability(cloud, views, [int(w) for w in args.stability.split(",")])
-        print(json.dumps(result["stability"]), flush=True)
     reference = renders(cloud, eval_views)
+    if args.stability:
+        result["stability"] = stability(cloud, views, [int(w) for w in args.stability.split(",")], eval_views,
+                                        reference)
+        print(json.dumps(result["stability"]), flush=True)
     if gt is not None:
         result["uncompressed_psnr_gt"] = mean_psnr(reference, gt)
     base = load_rate_point(args.rate_point)
     stage, params = choose_default_sh(cloud)  # the default encode's SH stage
     result["sh_stage"] = {"stage": stage, **params}
     opacity = np.sort(cloud.activated_opacities())[::-1]
-    for share in (float(s) for s in args.shares.split(",")):
+    for share in (float(s) for s in args.shares.split(",") if s):
         count = keep_count(n, share)
         methods = {"importance": {"keep_share": share}} if share < 1 else {"none": {}}
         if share < 1:
