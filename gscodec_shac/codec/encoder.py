@@ -113,6 +113,7 @@ class Encoder:
         self._work_key: str | None = None
         self.views = list(views) if views else None
         self.importance = importance
+        self._measured: tuple[GaussianCloud, np.ndarray] | None = None
 
     # ---------------------------------------------------------------- main
     def grid_order(self, cloud: GaussianCloud) -> GridOrder:
@@ -211,8 +212,10 @@ class Encoder:
         if share >= 1.0:
             return kept
         importance = self.importance
-        if importance is None:
-            importance = gaussian_importance(cloud, importance_views(cloud, self.views))
+        if importance is None:  # measured once per cloud (grid_order and encode both ask)
+            if self._measured is None or self._measured[0] is not cloud:
+                self._measured = (cloud, gaussian_importance(cloud, importance_views(cloud, self.views)))
+            importance = self._measured[1]
         elif np.shape(importance) != (cloud.num_gaussians,):
             raise ValidationError(f"importance has shape {np.shape(importance)}, expected one value per Gaussian "
                                   f"({cloud.num_gaussians:,})")
