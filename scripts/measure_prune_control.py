@@ -76,7 +76,7 @@ def main() -> None:
             row = {"controller": label, "target_bpg": bpg, "bytes": size, "bpg": 8 * size / n,
                    "kept": decoded.num_gaussians, "prune": outcome.plan.rate_point.prune_json(),
                    "settings": outcome.summary()["settings"], "encodes": outcome.encodes,
-                   "psnr_ref": mean_psnr(images, reference)}
+                   "psnr_ref": mean_psnr(images, reference), "measured_psnr": outcome.measured_psnr}
             if gt is not None:
                 row["psnr_gt"] = mean_psnr(images, gt)
             result["rows"].append(row)

@@ -8,10 +8,12 @@ factor: exactly what the Gaussian adds to the images, so a Gaussian hidden behin
 ones or outside every view scores 0. The sums come from the CPU renderer's blend kernel in
 one pass per view (:meth:`gscodec_shac.render.Renderer.contributions`).
 
-Views: the scene's cameras (at most :data:`MAX_VIEWS`, evenly spread by name), else
-:data:`ORBIT_VIEWS` orbit views around the model (:func:`gscodec_shac.camera.orbit_views`),
-all rendered at most :data:`WIDTH` pixels wide: ranking needs no full resolution
-(docs/rate_control.md measures the ranking's stability against the width).
+Views: the scene's cameras (at most :data:`MAX_VIEWS`, evenly spread by name) at their own
+resolution up to :data:`MAX_WIDTH` pixels wide, else :data:`ORBIT_VIEWS` orbit views around the
+model (:func:`gscodec_shac.camera.orbit_views`) :data:`ORBIT_WIDTH` wide. The ranking depends on
+the resolution, in both directions: the renderer's 0.3-pixel dilation makes sub-pixel Gaussians
+cover more of a coarse image, so a ranking from renders coarser or finer than the views the model
+is seen in prunes worse (docs/rate_control.md, "Importance pruning").
 """
 
 from __future__ import annotations
@@ -24,23 +26,25 @@ from gscodec_shac.camera import Camera, orbit_views
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.gaussians import GaussianCloud
 
-#: Orbit views used when the scene has no cameras, and their width.
+#: Orbit views used when the scene has no cameras, and their width (that of ``info --compare``).
 ORBIT_VIEWS = 24
-WIDTH = 200
-#: At most this many of the scene's cameras are rendered.
+ORBIT_WIDTH = 320
+#: At most this many of the scene's cameras are rendered, at most this wide.
 MAX_VIEWS = 64
+MAX_WIDTH = 1024
 
 
 def importance_views(cloud: GaussianCloud, cameras: Sequence[Camera] | None = None, *,
-                     up: Sequence[float] | None = (0.0, 0.0, 1.0), width: int = WIDTH) -> list[Camera]:
+                     up: Sequence[float] | None = (0.0, 0.0, 1.0), width: int = MAX_WIDTH) -> list[Camera]:
     """The views importance is measured from: ``cameras`` (at most :data:`MAX_VIEWS`, spread evenly
-    in name order) or orbit views around ``cloud``, each at most ``width`` pixels wide."""
+    in name order, at most ``width`` pixels wide) or :data:`ORBIT_VIEWS` orbit views around ``cloud``."""
     if cameras:
         ordered = sorted(cameras, key=lambda c: c.name)
         picks = np.linspace(0, len(ordered) - 1, min(MAX_VIEWS, len(ordered))).round().astype(int)
         views = [ordered[i] for i in picks]
     else:
-        views = orbit_views(cloud.means, ORBIT_VIEWS, width, up=up, opacities=cloud.activated_opacities())
+        views = orbit_views(cloud.means, ORBIT_VIEWS, min(width, ORBIT_WIDTH), up=up,
+                            opacities=cloud.activated_opacities())
     return [v if v.width <= width else v.resized(width, max(1, round(v.height * width / v.width))) for v in views]
 
 

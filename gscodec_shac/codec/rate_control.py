@@ -211,11 +211,14 @@ class RateController:
             raise ValidationError("rate control needs at least 2 Gaussians")
         self.cloud = cloud
         self.template = point
-        self.importance_shares = tuple(importance_shares)
-        self.importance_views = importance_views(cloud, views, up=up) if self.importance_shares else []
-        self.importance_: np.ndarray | None = None
         self.views = list(views) if views else orbit_views(cloud.means, CALIBRATION_VIEWS, CALIBRATION_WIDTH, up=up)
         self.views = _calibration_views(self.views)
+        # importance from the other cameras, so the pruning error is measured on views it was not ranked on
+        judged = {view.name for view in self.views}
+        self.importance_shares = tuple(importance_shares)
+        self.importance_views = importance_views(
+            cloud, [v for v in views if v.name not in judged] or views if views else None, up=up)
+        self.importance_: np.ndarray | None = None
         self.background = tuple(float(v) for v in background)
         self.workers = workers
         self.progress = progress
