@@ -8,7 +8,9 @@ factor: exactly what the Gaussian adds to the images, so a Gaussian hidden behin
 ones or outside every view scores 0. The sums come from the CPU renderer's blend kernel in
 one pass per view (:meth:`gscodec_shac.render.Renderer.contributions`).
 
-Views: the scene's cameras (at most :data:`MAX_VIEWS`, evenly spread by name) at their own
+Views: the scene's cameras (all of them up to :data:`MAX_VIEWS`, evenly spread by name: a
+Gaussian seen by few cameras scores 0 when those are left out, and pruning it shows in exactly
+those views) at their own
 resolution up to :data:`MAX_WIDTH` pixels wide, else :data:`ORBIT_VIEWS` orbit views around the
 model (:func:`gscodec_shac.camera.orbit_views`) :data:`ORBIT_WIDTH` wide. The ranking depends on
 the resolution, in both directions: the renderer's 0.3-pixel dilation makes sub-pixel Gaussians
@@ -30,7 +32,7 @@ from gscodec_shac.gaussians import GaussianCloud
 ORBIT_VIEWS = 24
 ORBIT_WIDTH = 320
 #: At most this many of the scene's cameras are rendered, at most this wide.
-MAX_VIEWS = 64
+MAX_VIEWS = 512
 MAX_WIDTH = 1024
 
 
