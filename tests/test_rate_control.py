@@ -136,3 +136,9 @@ def test_importance_pruning_is_a_candidate_next_to_the_opacity_thresholds(contro
 def test_without_importance_shares_only_opacity_thresholds_are_candidates(small_scene):
     bare = RateController(small_scene.cloud, views=small_scene.cameras, importance_shares=())
     assert all("keep_share" not in prune for prune, _, _ in bare._prune_model())
+
+
+def test_importance_is_ranked_on_cameras_the_pruning_error_is_not_judged_on(controller, small_scene):
+    judged = {view.name for view in controller.views}
+    ranked = {view.name for view in controller.importance_views}
+    assert ranked and not ranked & judged and ranked | judged == {c.name for c in small_scene.cameras}
