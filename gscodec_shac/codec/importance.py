@@ -1,7 +1,7 @@
 """Render-based importance of each Gaussian, and pruning by it (rate point ``prune.keep_share``).
 
 A Gaussian's importance is its share of the rendered images: its blending weights
-``w_i = alpha_i T_i`` (the factor that multiplies its colour in the blend, paper Eq. 1)
+``w_i = alpha_i T_i`` (the factor that multiplies its colour in the blend, paper Eq. 3)
 summed over every pixel of every view, each view's sum divided by the view's pixel count,
 averaged over the views. It is the global significance of LightGaussian without the volume
 factor: exactly what the Gaussian adds to the images, so a Gaussian hidden behind opaque
