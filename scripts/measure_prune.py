@@ -12,7 +12,7 @@ orbit views of :func:`importance_views`; the PSNR of orbit scenes is measured on
 
     python scripts/measure_prune.py ../shared/data/scenes/bonsai_cpu_sh3/point_cloud.ply \\
         --cameras ../shared/data/scenes/bonsai_cpu_sh3/cameras.json \\
-        --images ../shared/data/scenes/mipnerf360_bonsai/images --out ../out/prune/bonsai.json
+        --images ../shared/data/scenes/mipnerf360_bonsai/images --out bonsai.json
 """
 
 from __future__ import annotations
@@ -50,6 +50,33 @@ def mean_psnr(images, references) -> float:
     return float(np.mean([psnr(np.clip(a, 0, 1), np.clip(b, 0, 1)) for a, b in zip(images, references)]))
 
 
+def scene_views(cloud, cameras: str | None, images: str | None, test_every: int, up=(0.0, 0.0, 1.0),
+                n_eval: int = 12, eval_width: int = 320) -> tuple[list | None, list, list | None]:
+    """(training cameras or None, evaluation views, their photos or None): every ``test_every``-th
+    camera in name order held out; without cameras, orbit views (two rings, 0 and 25 degrees)."""
+    if cameras:
+        loaded = load_cameras(cameras, images) if images else load_cameras(cameras)
+        train, test = test_split(loaded, test_every)
+        gt = [load_image(c.image_path, size=(c.width, c.height)) for c in test] if images else None
+        return train, test, gt
+    views = orbit_views(cloud.means, n_eval, eval_width, up=up, elevations=(0.0, 25.0),
+                        opacities=cloud.activated_opacities())
+    return None, views, None
+
+
+def record(result: dict, row: dict, images, gt) -> None:
+    """Add the PSNR against the photos (when there are photos), keep and print ``row``."""
+    if gt is not None:
+        row["psnr_gt"] = mean_psnr(images, gt)
+    result["rows"].append(row)
+    print(json.dumps(row), flush=True)
+
+
+def save(result: dict, out: str) -> None:
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    Path(out).write_text(json.dumps(result, indent=2))
+
+
 def stability(cloud, views, widths: list[int], eval_views, reference) -> list[dict]:
     """Top-half overlap and rank correlation of the importance at each width with the widest, and the
     PSNR (against the uncompressed model) of the cloud pruned to its most important half by it."""
@@ -73,36 +100,32 @@ def stability(cloud, views, widths: list[int], eval_views, reference) -> list[di
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def scene_arguments(ap: argparse.ArgumentParser) -> None:
+    """The model, its cameras and photos, the held-out split, and where the results go."""
     ap.add_argument("model")
     ap.add_argument("--cameras")
     ap.add_argument("--images")
     ap.add_argument("--test-every", type=int, default=8)
+    ap.add_argument("--out", required=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    scene_arguments(ap)
     ap.add_argument("--up", default="0,0,1")
     ap.add_argument("--eval-views", type=int, default=12, help="orbit views for the PSNR without cameras")
     ap.add_argument("--eval-width", type=int, default=320)
     ap.add_argument("--shares", default=",".join(map(str, SHARES)))
     ap.add_argument("--rate-point", default=DEFAULT_RATE_POINT)
     ap.add_argument("--stability", default="", help="comma-separated widths, e.g. 50,100,200")
-    ap.add_argument("--out", required=True)
     args = ap.parse_args()
     up = tuple(float(v) for v in args.up.split(","))
     cloud, _ = read_model(args.model)
     n = cloud.num_gaussians
     result: dict = {"model": args.model, "n": n, "rate_point": args.rate_point, "rows": []}
-    gt = None
-    if args.cameras:
-        cameras = load_cameras(args.cameras, args.images) if args.images else load_cameras(args.cameras)
-        train, test = test_split(cameras, args.test_every)
-        views = importance_views(cloud, train)
-        eval_views = test
-        if args.images:
-            gt = [load_image(c.image_path, size=(c.width, c.height)) for c in test]
-    else:
-        views = importance_views(cloud, None, up=up)
-        eval_views = orbit_views(cloud.means, args.eval_views, args.eval_width, up=up, elevations=(0.0, 25.0),
-                                 opacities=cloud.activated_opacities())
+    train, eval_views, gt = scene_views(cloud, args.cameras, args.images, args.test_every, up, args.eval_views,
+                                        args.eval_width)
+    views = importance_views(cloud, train, up=up)
     result["importance_views"] = {"n": len(views), "width": views[0].width, "height": views[0].height}
     result["eval_views"] = {"n": len(eval_views), "width": eval_views[0].width}
     tic = time.process_time()
@@ -138,12 +161,8 @@ def main() -> None:
                    "bpg": 8 * stream.total_bytes() / n, "psnr_ref": mean_psnr(images, reference),
                    "psnr_ref_pruned_only": mean_psnr(renders(kept, eval_views), reference), "encode_s": encode_s,
                    **prune}
-            if gt is not None:
-                row["psnr_gt"] = mean_psnr(images, gt)
-            result["rows"].append(row)
-            print(json.dumps(row), flush=True)
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(result, indent=2))
+            record(result, row, images, gt)
+    save(result, args.out)
 
 
 if __name__ == "__main__":
