@@ -120,7 +120,7 @@ def test_cli_target_writes_nothing_when_unreachable(tmp_path, small_cloud, capsy
 
 def test_importance_pruning_is_a_candidate_next_to_the_opacity_thresholds(controller, small_cloud):
     n = small_cloud.num_gaussians
-    by_importance = [(prune, kept, mse) for prune, kept, mse in controller.prune_ if "keep_share" in prune]
+    by_importance = [(prune, kept, mse) for prune, kept, mse in controller.prune_ if prune["keep_share"] < 1]
     assert [p["keep_share"] for p, _, _ in by_importance] == list(IMPORTANCE_SHARES)
     assert all(kept == keep_count(n, p["keep_share"]) / n and mse > 0 for p, kept, mse in by_importance)
     mses = [mse for _, _, mse in by_importance]
@@ -135,7 +135,7 @@ def test_importance_pruning_is_a_candidate_next_to_the_opacity_thresholds(contro
 
 def test_without_importance_shares_only_opacity_thresholds_are_candidates(small_scene):
     bare = RateController(small_scene.cloud, views=small_scene.cameras, importance_shares=())
-    assert all("keep_share" not in prune for prune, _, _ in bare._prune_model())
+    assert all(prune["keep_share"] == 1.0 for prune, _, _ in bare._prune_model())
 
 
 def test_importance_is_ranked_on_cameras_the_pruning_error_is_not_judged_on(controller, small_scene):

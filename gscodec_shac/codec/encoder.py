@@ -30,11 +30,11 @@ import numpy as np
 from tqdm.auto import tqdm
 
 import gscodec_shac
+from gscodec_shac.camera import Camera
 from gscodec_shac.codec import quantize as qz
 from gscodec_shac.codec.allocation import waterfill_qps
 from gscodec_shac.codec.attributes import ATTRIBUTES, SH_FEATURES_TRANSFORM
 from gscodec_shac.codec.container import Bitstream
-from gscodec_shac.camera import Camera
 from gscodec_shac.codec.grid.base import GridCodec, get_codec
 from gscodec_shac.codec.importance import gaussian_importance, importance_views, keep_count, most_important
 from gscodec_shac.codec.layout import GridOrder, check_grid, kept_rows, plan_grid, plan_positions_grid, planes, qp_runs

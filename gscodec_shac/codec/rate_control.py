@@ -217,7 +217,8 @@ class RateController:
         judged = {view.name for view in self.views}
         self.importance_shares = tuple(importance_shares)
         self.importance_views = importance_views(
-            cloud, [v for v in views if v.name not in judged] or views if views else None, up=up)
+            cloud, [v for v in views if v.name not in judged] or views if views else None, up=up) \
+            if self.importance_shares else []
         self.importance_: np.ndarray | None = None
         self.background = tuple(float(v) for v in background)
         self.workers = workers
@@ -225,7 +226,7 @@ class RateController:
         self.max_encodes = max_encodes
         self.models_: dict[str, AttributeModel] = {}
         #: (rate-point prune settings, share of Gaussians kept, rendered MSE of pruning) per candidate
-        self.prune_: list[tuple[dict[str, float], float, float]] = [({}, 1.0, 0.0)]
+        self.prune_: list[tuple[dict[str, float], float, float]] = [(_prune(), 1.0, 0.0)]
         self.overhead_: float = 0.0
         self.stage_: ShStage | None = None
         self.seconds_: dict[str, float] = {}
@@ -274,11 +275,11 @@ class RateController:
         something (at most 80%) and each importance share."""
         opacity = self.cloud.activated_opacities()
         n = self.cloud.num_gaussians
-        out: list[tuple[dict[str, float], float, float]] = [({}, 1.0, 0.0)]
+        out: list[tuple[dict[str, float], float, float]] = [(_prune(), 1.0, 0.0)]
         for threshold in PRUNE_THRESHOLDS[1:]:
             keep = np.flatnonzero(opacity >= threshold)
             if 0.2 <= keep.size / n < 1.0:
-                out.append(({"min_opacity": threshold}, keep.size / n, self._rendered_mse(self.cloud.select(keep))))
+                out.append((_prune(min_opacity=threshold), keep.size / n, self._rendered_mse(self.cloud.select(keep))))
             if bar is not None:
                 bar.update(1)
         if self.importance_shares:
@@ -286,7 +287,7 @@ class RateController:
         for share in self.importance_shares:
             keep = most_important(self.importance_, np.arange(n), keep_count(n, share))
             if keep.size < n:
-                out.append(({"keep_share": share}, keep.size / n, self._rendered_mse(self.cloud.select(keep))))
+                out.append((_prune(keep_share=share), keep.size / n, self._rendered_mse(self.cloud.select(keep))))
             if bar is not None:
                 bar.update(1)
         return out
@@ -562,6 +563,11 @@ def _model_sizes(stream: Bitstream) -> dict[str, int]:
     sizes = dict(stream.attribute_sizes())
     sizes["sh"] = sizes.get("sh", 0) + sizes.pop("sh_state", 0)
     return sizes
+
+
+def _prune(min_opacity: float = 0.0, keep_share: float = 1.0) -> dict[str, float]:
+    """One pruning candidate as rate-point fields (the other kind of pruning off)."""
+    return {"min_opacity": min_opacity, "keep_share": keep_share}
 
 
 def _key(plan: Plan) -> tuple:
