@@ -8,7 +8,9 @@ import pytest
 from gscodec_shac.cli import main
 from gscodec_shac.codec import Decoder, Encoder, load_rate_point
 from gscodec_shac.codec.allocation import MAX_QP, waterfill_qps
+from gscodec_shac.codec.importance import keep_count
 from gscodec_shac.codec.rate_control import (
+    IMPORTANCE_SHARES,
     PSNR_WINDOW,
     SIZE_TOLERANCE,
     RateController,
@@ -142,3 +144,29 @@ def test_probe_of_a_large_cloud_spans_every_coded_channel():
             assert np.array_equal(values[rows].max(axis=0), values.max(axis=0)), name
     assert np.array_equal(np.ptp(features[rows], axis=0), np.ptp(features, axis=0))
     assert not np.array_equal(np.ptp(features[runs], axis=0), np.ptp(features, axis=0))  # the runs alone do not
+
+
+def test_importance_pruning_is_a_candidate_next_to_the_opacity_thresholds(controller, small_cloud):
+    n = small_cloud.num_gaussians
+    by_importance = [(prune, kept, mse) for prune, kept, mse in controller.prune_ if prune["keep_share"] < 1]
+    assert [p["keep_share"] for p, _, _ in by_importance] == list(IMPORTANCE_SHARES)
+    assert all(kept == keep_count(n, p["keep_share"]) / n and mse > 0 for p, kept, mse in by_importance)
+    mses = [mse for _, _, mse in by_importance]
+    assert mses == sorted(mses)  # keeping fewer costs more
+    index = controller.prune_.index(by_importance[1])
+    plan = controller._predict({**controller.plan(Target("bytes", 150 * n / 8)).settings, "prune": index})
+    assert plan.rate_point.keep_share == IMPORTANCE_SHARES[1] and plan.rate_point.min_opacity == 0.0
+    stream = controller._encode(plan, Target("bytes", 150 * n / 8))
+    assert Decoder().decode(stream.to_bytes()).num_gaussians == keep_count(n, IMPORTANCE_SHARES[1])
+    assert stream.header["prune"]["keep_share"] == IMPORTANCE_SHARES[1]
+
+
+def test_without_importance_shares_only_opacity_thresholds_are_candidates(small_scene):
+    bare = RateController(small_scene.cloud, views=small_scene.cameras, importance_shares=())
+    assert all(prune["keep_share"] == 1.0 for prune, _, _ in bare._prune_model())
+
+
+def test_importance_is_ranked_on_cameras_the_pruning_error_is_not_judged_on(controller, small_scene):
+    judged = {view.name for view in controller.views}
+    ranked = {view.name for view in controller.importance_views}
+    assert ranked and not ranked & judged and ranked | judged == {c.name for c in small_scene.cameras}

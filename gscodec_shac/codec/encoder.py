@@ -24,17 +24,19 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 from tqdm.auto import tqdm
 
 import gscodec_shac
+from gscodec_shac.camera import Camera
 from gscodec_shac.codec import quantize as qz
 from gscodec_shac.codec.allocation import waterfill_qps
 from gscodec_shac.codec.attributes import ATTRIBUTES, SH_FEATURES_TRANSFORM
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.grid.base import GridCodec, get_codec
+from gscodec_shac.codec.importance import gaussian_importance, importance_views, keep_count, most_important
 from gscodec_shac.codec.layout import GridOrder, check_grid, kept_rows, plan_grid, plan_positions_grid, planes, qp_runs
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode
 from gscodec_shac.codec.rate_points import AttributeSpec, RatePoint, load_rate_point
@@ -72,7 +74,9 @@ class Encoder:
     ``workers`` threads code the chunks (the bytes do not depend on it). ``chunk_cache``
     (a dict shared by several encoders of the same cloud, e.g. the rate controller's trials)
     keeps coded chunks by their planes and settings, so a chunk whose input did not change
-    is not coded again. After
+    is not coded again. ``views`` (cameras) or ``importance`` (one value per input Gaussian) serve
+    importance pruning (rate point ``prune.keep_share``, :mod:`.importance`): without either it is
+    measured on orbit views. After
     :meth:`encode`, ``order_`` holds the input row of each decoded Gaussian and
     ``timings_`` the seconds per step.
     """
@@ -90,6 +94,8 @@ class Encoder:
         progress: bool = False,
         workers: int | None = None,
         chunk_cache: dict | None = None,
+        views: Sequence[Camera] | None = None,
+        importance: np.ndarray | None = None,
     ) -> None:
         self._stage_instance = sh_stage if isinstance(sh_stage, ShStage) else None
         name = self._stage_instance.name if self._stage_instance is not None else sh_stage
@@ -105,11 +111,14 @@ class Encoder:
         self._jobs: list[_Job] = []
         self._chunk_cache = chunk_cache
         self._work_key: str | None = None
+        self.views = list(views) if views else None
+        self.importance = importance
+        self._measured: tuple[GaussianCloud, np.ndarray] | None = None
 
     # ---------------------------------------------------------------- main
     def grid_order(self, cloud: GaussianCloud) -> GridOrder:
         """The grid placement :meth:`encode` computes for ``cloud`` (after pruning), to reuse it."""
-        kept = kept_rows(cloud, self.rate_point.min_opacity)
+        kept = self.kept_rows(cloud)
         return self._plan(cloud if kept.size == cloud.num_gaussians else cloud.select(kept))
 
     def _plan(self, work: GaussianCloud) -> GridOrder:
@@ -177,7 +186,7 @@ class Encoder:
             "sh_degree": cloud.sh_degree,
             "grid": {"height": grid.shape[0], "width": grid.shape[1], "padding": padding, "policy": grid.policy,
                      "dropped": grid.dropped, "sort": None if rp.positions_as_set else rp.sort.to_json()},
-            "prune": {"min_opacity": rp.min_opacity, "pruned": int(cloud.num_gaussians - kept.size)},
+            "prune": {**rp.prune_json(), "pruned": int(cloud.num_gaussians - kept.size)},
             "color": rp.color,
             "sh": sh_header,
             "attributes": attributes,
@@ -189,11 +198,28 @@ class Encoder:
     def _placement(self, cloud: GaussianCloud, grid: GridOrder | None) -> tuple:
         """Prune and place on the grid: (kept rows, grid order, occupied cells, the cloud in grid order)."""
         with self._timed("prune"):
-            kept = kept_rows(cloud, self.rate_point.min_opacity)
+            kept = self.kept_rows(cloud)
             work = cloud if kept.size == cloud.num_gaussians else cloud.select(kept)
         grid = self._plan(work) if grid is None else check_grid(grid, work)
         cells = grid.cells()
         return kept, grid, cells, work.select(grid.order[cells])
+
+    def kept_rows(self, cloud: GaussianCloud) -> np.ndarray:
+        """Rows that survive the opacity threshold and then, with ``keep_share < 1``, the most
+        important of them (``keep_share`` of the input; :mod:`.importance`)."""
+        kept = kept_rows(cloud, self.rate_point.min_opacity)
+        share = self.rate_point.keep_share
+        if share >= 1.0:
+            return kept
+        importance = self.importance
+        if importance is None:  # measured once per cloud (grid_order and encode both ask)
+            if self._measured is None or self._measured[0] is not cloud:
+                self._measured = (cloud, gaussian_importance(cloud, importance_views(cloud, self.views)))
+            importance = self._measured[1]
+        elif np.shape(importance) != (cloud.num_gaussians,):
+            raise ValidationError(f"importance has shape {np.shape(importance)}, expected one value per Gaussian "
+                                  f"({cloud.num_gaussians:,})")
+        return most_important(np.asarray(importance, dtype=np.float64), kept, keep_count(cloud.num_gaussians, share))
 
     def _cached(self, what: str, compute: Any) -> Any:
         """``compute()``, kept in the shared cache under this encode's pruning and sorting settings."""
@@ -338,7 +364,7 @@ class Encoder:
 def _work_key(rp: RatePoint) -> str:
     """What decides the grid placement (hence the cloud in grid order): pruning and sorting settings."""
     positions = rp.attributes["positions"]
-    return json.dumps([rp.min_opacity, rp.positions_as_set, positions.bits if rp.positions_as_set else None,
+    return json.dumps([rp.prune_json(), rp.positions_as_set, positions.bits if rp.positions_as_set else None,
                        rp.sort.to_json(), rp.sort.multiple], sort_keys=True, default=str)
 
 

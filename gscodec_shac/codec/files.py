@@ -15,7 +15,9 @@ from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.decoder import Decoder
 from gscodec_shac.codec.encoder import Encoder
 from gscodec_shac.codec.rate_control import TEMPLATE, RateController, Target, make_target
-from gscodec_shac.codec.rate_points import RatePoint
+from gscodec_shac.codec.importance import importance_views
+from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
+from gscodec_shac.io.cameras import load_cameras
 from gscodec_shac.errors import GscodecError, OutputError
 
 
@@ -31,6 +33,9 @@ def encode_file(
     progress: bool = False,
     choose_sh: Callable[[Any], tuple[str, dict[str, Any]]] | None = None,
     network_bits: int | None = None,
+    keep_share: float | None = None,
+    cameras: str | os.PathLike | None = None,
+    up: tuple[float, float, float] = (0.0, 0.0, 1.0),
     **stage_params: Any,
 ) -> dict[str, Any]:
     """Any model file ``read_model`` reads -> ``.gsc`` (written atomically); returns a summary
@@ -41,7 +46,8 @@ def encode_file(
     codecs' speed preset (x265's ``preset`` option). ``choose_sh``, when given, picks
     ``(stage, params)`` from the model read (the default encode, :mod:`.defaults`);
     ``network_bits`` how a dynamic model's network is stored (16: float16, 2..8: quantised;
-    default 8, :mod:`.deformation`).
+    default 8, :mod:`.deformation`). ``keep_share`` overrides the rate point's importance pruning
+    (:mod:`.importance`), measured on ``cameras`` (any camera file) or else orbit views around ``up``.
     """
     from gscodec_shac.deform_arch import is_dynamic_model
     from gscodec_shac.io.models import read_model
@@ -62,16 +68,20 @@ def encode_file(
     if choose_sh is not None:
         sh, chosen = choose_sh(cloud)
         stage_params = {**chosen, **stage_params}
-    encoder = Encoder(rate_point, sh_stage=sh, sort=sort, seed=seed,
+    point = load_rate_point(rate_point).with_overrides(keep_share=keep_share)
+    views = None
+    if point.keep_share < 1.0:
+        views = importance_views(cloud, load_cameras(cameras) if cameras is not None else None, up=up)
+    encoder = Encoder(point, sh_stage=sh, sort=sort, seed=seed,
                       sh_params={k: v for k, v in stage_params.items() if v is not None},
-                      codec_options={"preset": preset} if preset else None, progress=progress)
+                      codec_options={"preset": preset} if preset else None, progress=progress, views=views)
     stream = encoder.encode(cloud)
     if dynamic is not None:
         from gscodec_shac.codec.deformation import DEFAULT_BITS
 
         add_deformation(stream, dynamic.arch, dynamic.net.weights(),
                         DEFAULT_BITS if network_bits is None else network_bits)
-    with inputs_protected(in_ply):
+    with inputs_protected(in_ply, *([cameras] if cameras is not None else [])):
         size = stream.write(out_gsc)
     return {
         "input": str(in_ply),
@@ -111,7 +121,6 @@ def encode_file_to_target(
     Nothing is written when the target cannot be reached (:class:`TargetUnreachableError`).
     """
     from gscodec_shac.deform_arch import is_dynamic_model
-    from gscodec_shac.io.cameras import load_cameras
     from gscodec_shac.io.models import read_model
 
     tic = time.perf_counter()

@@ -23,7 +23,8 @@ each attribute on its own:
   on a few views (the scene's cameras, else orbit views), against renders of the
   uncompressed cloud;
 * **pruning**: the rendered MSE of the cloud without its Gaussians below each opacity
-  threshold (exact renders); pruning keeps a share ``f`` of the Gaussians and scales every
+  threshold, or without all but its most important ones (:mod:`.importance`, at each share of
+  :data:`IMPORTANCE_SHARES`), by exact renders; pruning keeps a share ``f`` of the Gaussians and scales every
   attribute's bytes by ``f`` (positions: their gaps grow, ``+log2(1/f)`` bits each).
 
 The predicted rendered error is ``D = sum_a k_a e_a(x_a)`` (PSNR against the uncompressed
@@ -59,6 +60,7 @@ from gscodec_shac.codec.attributes import ATTRIBUTES
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.decoder import Decoder
 from gscodec_shac.codec.encoder import Encoder, default_workers
+from gscodec_shac.codec.importance import gaussian_importance, importance_views, keep_count, most_important
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode, set_order
 from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
 from gscodec_shac.errors import GscodecError, ValidationError
@@ -69,7 +71,7 @@ from gscodec_shac.shac.base import ShStage, make_stage
 #: The template rate point of SHAC-auto.
 TEMPLATE = "shac_auto:template"
 #: Bumped when the controller's choices change for the same input (RD sweeps key their rows on it).
-VERSION = 4
+VERSION = 5
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
 #: QPs at which the probe is encoded; the models interpolate between them (and extrapolate).
@@ -78,6 +80,8 @@ PROBE_QPS = (6, 18, 30, 42)
 POSITION_BITS = tuple(range(9, 17))
 #: Candidate opacity thresholds below which Gaussians are pruned (rate-point ``prune.min_opacity``).
 PRUNE_THRESHOLDS = (0.0, 0.005, 0.01, 0.02, 0.05)
+#: Candidate shares of the Gaussians kept by render-based importance (rate-point ``prune.keep_share``).
+IMPORTANCE_SHARES = (0.8, 0.6, 0.45, 0.3)
 #: A probe holds at least this many Gaussians (all of a smaller cloud) ...
 PROBE_MIN = 20_000
 #: ... or this share of the cloud, in this many runs along the Morton order.
@@ -181,7 +185,7 @@ class Outcome:
         out = {
             "target": {"kind": self.target.kind, "value": self.target.value},
             "settings": {**{k: v for k, v in self.plan.settings.items() if k != "prune"},
-                         "min_opacity": self.plan.rate_point.min_opacity},
+                         **self.plan.rate_point.prune_json()},
             "predicted_bytes": round(self.plan.predicted_bytes),
             "predicted_psnr": round(self.plan.predicted_psnr, 3),
             "encodes": self.encodes,
@@ -216,6 +220,7 @@ class RateController:
         workers: int | None = None,
         progress: bool = False,
         max_encodes: int = 6,
+        importance_shares: Sequence[float] = IMPORTANCE_SHARES,
     ) -> None:
         point = load_rate_point(template).with_overrides(codec_options=codec_options)
         if not point.positions_as_set or point.attributes["sh_features"].allocation != "waterfill":
@@ -227,13 +232,20 @@ class RateController:
         self.template = point
         self.views = list(views) if views else orbit_views(cloud.means, CALIBRATION_VIEWS, CALIBRATION_WIDTH, up=up)
         self.views = _calibration_views(self.views)
+        # importance from the other cameras, so the pruning error is measured on views it was not ranked on
+        judged = {view.name for view in self.views}
+        self.importance_shares = tuple(importance_shares)
+        self.importance_views = importance_views(
+            cloud, [v for v in views if v.name not in judged] or views if views else None, up=up) \
+            if self.importance_shares else []
+        self.importance_: np.ndarray | None = None
         self.background = tuple(float(v) for v in background)
         self.workers = workers
         self.progress = progress
         self.max_encodes = max_encodes
         self.models_: dict[str, AttributeModel] = {}
-        #: (opacity threshold, share of Gaussians kept, rendered MSE of pruning) per candidate
-        self.prune_: list[tuple[float, float, float]] = [(0.0, 1.0, 0.0)]
+        #: (rate-point prune settings, share of Gaussians kept, rendered MSE of pruning) per candidate
+        self.prune_: list[tuple[dict[str, float], float, float]] = [(_prune(), 1.0, 0.0)]
         self.overhead_: float = 0.0
         self.stage_: ShStage | None = None
         self.seconds_: dict[str, float] = {}
@@ -256,7 +268,8 @@ class RateController:
             self.stage_ = stage.fit(np.concatenate([cloud.sh_dc, ac], axis=1) if stage.uses_dc else ac)
         probes = len(PROBE_QPS)
         attributes = len(QP_ATTRIBUTES) - (0 if self.stage_ is not None else 1)
-        renders = 1 + attributes + 1 + len(PRUNE_THRESHOLDS) - 1  # references, perturbed attributes, positions, pruning
+        renders = 1 + attributes + 1 + len(PRUNE_THRESHOLDS) - 1 + len(self.importance_shares)  # references,
+        # perturbed attributes, positions, pruning
         with tqdm(total=probes + renders, desc="rate control: calibrate", unit="step", disable=not self.progress,
                   leave=False) as bar:
             renderer = Renderer(cloud)
@@ -277,15 +290,24 @@ class RateController:
         self.overhead_ = overhead
         return self
 
-    def _prune_model(self, bar: Any = None) -> list[tuple[float, float, float]]:
-        """Share kept and rendered MSE for each opacity threshold that prunes something (at most 80%)."""
+    def _prune_model(self, bar: Any = None) -> list[tuple[dict[str, float], float, float]]:
+        """Rate-point prune settings, share kept and rendered MSE for each opacity threshold that prunes
+        something (at most 80%) and each importance share."""
         opacity = self.cloud.activated_opacities()
-        out = [(0.0, 1.0, 0.0)]
+        n = self.cloud.num_gaussians
+        out: list[tuple[dict[str, float], float, float]] = [(_prune(), 1.0, 0.0)]
         for threshold in PRUNE_THRESHOLDS[1:]:
-            keep = opacity >= threshold
-            kept = float(keep.mean())
-            if 0.2 <= kept < 1.0:
-                out.append((threshold, kept, self._rendered_mse(self.cloud.select(np.flatnonzero(keep)))))
+            keep = np.flatnonzero(opacity >= threshold)
+            if 0.2 <= keep.size / n < 1.0:
+                out.append((_prune(min_opacity=threshold), keep.size / n, self._rendered_mse(self.cloud.select(keep))))
+            if bar is not None:
+                bar.update(1)
+        if self.importance_shares:
+            self.importance_ = gaussian_importance(self.cloud, self.importance_views)
+        for share in self.importance_shares:
+            keep = most_important(self.importance_, np.arange(n), keep_count(n, share))
+            if keep.size < n:
+                out.append((_prune(keep_share=share), keep.size / n, self._rendered_mse(self.cloud.select(keep))))
             if bar is not None:
                 bar.update(1)
         return out
@@ -516,8 +538,8 @@ class RateController:
             key = "sh_features" if name == "sh" else name
             field_name = "bits" if name == "positions" else "qp"
             attributes[key] = dataclasses.replace(attributes[key], **{field_name: int(value)})
-        min_opacity = self.prune_[settings.get("prune", 0)][0]
-        return dataclasses.replace(point, attributes=attributes, name=f"{point.name}+auto", min_opacity=min_opacity)
+        return dataclasses.replace(point, attributes=attributes, name=f"{point.name}+auto",
+                                   **self.prune_[settings.get("prune", 0)][0])
 
     # ----------------------------------------------------------- encode
     def encode(self, target: Target) -> Outcome:
@@ -588,7 +610,7 @@ class RateController:
     def _encode(self, plan: Plan, target: Target) -> Bitstream:
         """One real encode of ``plan``; the header records the target (the settings are in its rate point)."""
         encoder = Encoder(plan.rate_point, sh_stage=self.stage_, fit_stage=False, workers=self.workers,
-                          progress=self.progress, chunk_cache=self._cache)
+                          progress=self.progress, chunk_cache=self._cache, importance=self.importance_)
         stream = encoder.encode(self.cloud)
         stream.header["rate_control"] = {"target": {"kind": target.kind, "value": target.value},
                                          "template": self.template.name}
@@ -690,6 +712,11 @@ def _model_sizes(stream: Bitstream) -> dict[str, int]:
     sizes = dict(stream.attribute_sizes())
     sizes["sh"] = sizes.get("sh", 0) + sizes.pop("sh_state", 0)
     return sizes
+
+
+def _prune(min_opacity: float = 0.0, keep_share: float = 1.0) -> dict[str, float]:
+    """One pruning candidate as rate-point fields (the other kind of pruning off)."""
+    return {"min_opacity": min_opacity, "keep_share": keep_share}
 
 
 def _key(plan: Plan) -> tuple:

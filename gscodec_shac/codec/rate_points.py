@@ -14,7 +14,8 @@ deep-merged over the defaults, then validated into a :class:`RatePoint`::
         positions: {bits: 16, layout: split8}       # split8 | single | set (lossless only)
       sh: {stage: none}                             # SH stage and its parameters
       sort: {method: plas, policy: pad, multiple: 8, seed: 0, weights: {xyz: 1.0}}
-      prune: {min_opacity: 0.0}                     # drop Gaussians below this opacity
+      prune: {min_opacity: 0.0, keep_share: 1.0}    # drop Gaussians below this opacity; keep this
+                                                    # share of the input, the most important by render
     points:
       rp01:
         qp: {opacity: 22, rotation: 17, scale: 12, sh_dc: 7, sh_ac: [32, 37, 42]}
@@ -34,7 +35,9 @@ SHAC-PCA this chooses the rank M).
 Positions may instead be coded as a set (``layout: set``, :mod:`gscodec_shac.codec.positions`):
 the grid order then follows from the decoded positions (Morton order), so the ``sort``
 settings do not apply.
-Positions and labels are always lossless.
+Positions and labels are always lossless. ``prune.keep_share`` (in (0, 1], default 1) keeps that
+share of the input Gaussians, those with the highest render-based importance
+(:mod:`gscodec_shac.codec.importance`), after the opacity threshold.
 
 References: ``"paper_table3:rp2"`` (a file shipped in
 ``rate_points/`` at the repository root, shipped in the wheel), ``"my.yaml:fast"`` or ``"my.yaml"`` (a file
@@ -73,7 +76,7 @@ _ATTRIBUTE_KEYS = {"codec", "codec_options", "bits", "qp", "layout", "allocation
 #: ``waterfill`` (reverse water-filling: one QP per feature from the stage's feature weights).
 ALLOCATIONS = ("degree", "waterfill")
 _SORT_KEYS = {"method", "policy", "multiple", "seed", "weights", "normalize", "schedule"}
-_PRUNE_KEYS = {"min_opacity"}
+_PRUNE_KEYS = {"min_opacity", "keep_share"}
 _DEFAULT_WEIGHTS = {"xyz": 1.0, "scale": 1.0, "opacity": 1.0, "dc": 1.0, "rotation": 0.0}
 
 
@@ -134,18 +137,27 @@ class RatePoint:
     sort: SortSpec = field(default_factory=SortSpec)
     min_opacity: float = 0.0
     description: str = ""
+    keep_share: float = 1.0
 
     @property
     def positions_as_set(self) -> bool:
         """Positions coded as a set, the grid order following from them (layout ``set``)."""
         return self.attributes["positions"].layout == "set"
 
+    def prune_json(self) -> dict[str, float]:
+        """The pruning settings as recorded (``keep_share`` only when it prunes, so streams without it
+        keep their bytes)."""
+        out = {"min_opacity": self.min_opacity}
+        if self.keep_share < 1.0:
+            out["keep_share"] = self.keep_share
+        return out
+
     def grid_settings(self) -> dict[str, Any]:
         """Everything the grid order depends on (besides the cloud): pruning, and the sort settings
         or, for set-coded positions, their bit depth."""
         if self.positions_as_set:
-            return {"min_opacity": self.min_opacity, "positions": self.attributes["positions"].to_json()}
-        return {"min_opacity": self.min_opacity, "sort": self.sort.to_json()}
+            return {**self.prune_json(), "positions": self.attributes["positions"].to_json()}
+        return {**self.prune_json(), "sort": self.sort.to_json()}
 
     def with_overrides(
         self,
@@ -155,8 +167,9 @@ class RatePoint:
         sort_method: str | None = None,
         seed: int | None = None,
         codec_options: Mapping[str, Any] | None = None,
+        keep_share: float | None = None,
     ) -> "RatePoint":
-        """A copy with the SH stage, sorting or lossy-codec options replaced (CLI overrides).
+        """A copy with the SH stage, sorting, lossy-codec options or importance pruning replaced (CLI overrides).
 
         ``sh_params`` replace the point's stage parameters when the stage changes
         and are merged into them otherwise. ``codec_options`` are merged into the
@@ -188,6 +201,8 @@ class RatePoint:
                 for name, spec in point.attributes.items()
             }
             point = dataclasses.replace(point, attributes=attributes)
+        if keep_share is not None:
+            point = dataclasses.replace(point, keep_share=check_keep_share(keep_share, "the keep share"))
         return point
 
     def to_json(self) -> dict[str, Any]:
@@ -198,7 +213,7 @@ class RatePoint:
             "color": self.color,
             "sh": {"stage": self.sh_stage, **self.sh_params},
             "sort": self.sort.to_json(),
-            "prune": {"min_opacity": self.min_opacity},
+            "prune": self.prune_json(),
             "attributes": {name: spec.to_json() for name, spec in self.attributes.items()},
         }
 
@@ -355,6 +370,9 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
     min_opacity = prune.get("min_opacity", 0.0)
     if isinstance(min_opacity, bool) or not isinstance(min_opacity, (int, float)) or not 0 <= min_opacity < 1:
         raise where.error("prune.min_opacity", f"must be a number in [0, 1), got {min_opacity!r}")
+    keep_share = prune.get("keep_share", 1.0)
+    if not _is_share(keep_share):
+        raise where.error("prune.keep_share", f"must be a number in (0, 1], got {keep_share!r}")
 
     description = raw.get("description", "")
     if not isinstance(description, str):
@@ -368,7 +386,19 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
         sort=sort,
         min_opacity=float(min_opacity),
         description=description.strip(),
+        keep_share=float(keep_share),
     )
+
+
+def _is_share(value: Any) -> bool:
+    return not isinstance(value, bool) and isinstance(value, (int, float)) and 0 < value <= 1
+
+
+def check_keep_share(value: Any, what: str) -> float:
+    """``value`` as a share of Gaussians to keep, in (0, 1]; a :class:`RatePointError` naming ``what`` otherwise."""
+    if not _is_share(value):
+        raise RatePointError(f"{what} must be a number in (0, 1] (the share of the Gaussians kept), got {value!r}")
+    return float(value)
 
 
 def _qp(where: Where, value: Any, key: str, *, ladder: bool) -> int | tuple[int, ...] | None:

@@ -58,11 +58,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="the lowest PSNR (dB) against the uncompressed model on --cameras (else orbit views), "
                         "e.g. 40")
     target.add_argument("--cameras", help="views the quality is judged from (any camera file or capture folder, "
-                        "e.g. cameras.json)")
+                        "e.g. cameras.json); with --prune-keep, the views importance is measured from")
     target.add_argument("--background", default="0,0,0",
                         help="background colour R,G,B in [0, 1] the views are rendered over (default 0,0,0; "
                         "NeRF-synthetic scenes use 1,1,1)")
     add_up(target, "the orbit views without --cameras")
+    parser.add_argument("--prune-keep", type=float, metavar="SHARE",
+                        help="keep this share of the Gaussians, in (0, 1]: those that contribute most to renders "
+                        "from --cameras (else orbit views), after the rate point's opacity threshold "
+                        "(default: the rate point's prune.keep_share, 1; docs/rate_control.md)")
     parser.add_argument("--sh", choices=STAGES.names(),
                         help="SH stage (default: pca without --rate-point, else the rate point's): "
                         + "; ".join(f"{name}: {cls.summary}" for name, cls in STAGES.items()))
@@ -92,6 +96,7 @@ def run(args: argparse.Namespace) -> int:
     from gscodec_shac.codec import encode_file
     from gscodec_shac.codec.defaults import DEFAULT_RATE_POINT, DEFAULT_SH_STAGE, choose_default_sh, describe_default
     from gscodec_shac.codec.rate_points import load_rate_point
+    from gscodec_shac.commands._options import comma_floats
     from gscodec_shac.errors import GscodecError
     from gscodec_shac.io.models import report_notes
 
@@ -99,8 +104,9 @@ def run(args: argparse.Namespace) -> int:
     targets = (args.target_size, args.target_bpg, args.target_psnr)
     if any(t is not None for t in targets):
         return _run_to_target(args)
-    if args.cameras is not None:
-        raise GscodecError("--cameras applies to --target-psnr (the views the quality is judged from)")
+    if args.cameras is not None and args.prune_keep is None:
+        raise GscodecError("--cameras applies to --target-psnr (the views the quality is judged from) and to "
+                           "--prune-keep (the views importance is measured from)")
     default = args.rate_point is None
     point = load_rate_point(args.rate_point or DEFAULT_RATE_POINT)
     automatic = default and args.sh is None  # the SH stage is chosen from the model (codec/defaults.py)
@@ -122,7 +128,8 @@ def run(args: argparse.Namespace) -> int:
     summary = encode_file(
         args.input, args.output, point, sh=stage, sort=args.sort, seed=args.seed, preset=args.preset,
         progress=not args.quiet and sys.stderr.isatty(), choose_sh=choose_default_sh if automatic else None,
-        network_bits=args.network_bits, **params,
+        network_bits=args.network_bits, keep_share=args.prune_keep, cameras=args.cameras,
+        up=tuple(comma_floats(args.up, "--up")), **params,
     )
     notes = list(summary["notes"])
     if summary.get("sh_degree") == 0 and args.sh not in (None, "none"):
@@ -175,11 +182,12 @@ def _run_to_target(args: argparse.Namespace) -> int:
     from gscodec_shac.io.models import report_notes
 
     fixed = [flag for flag, value in (("--sh", args.sh), ("--sort", args.sort), ("--seed", args.seed),
-                                      ("--network-bits", args.network_bits)) if value is not None]
+                                      ("--network-bits", args.network_bits), ("--prune-keep", args.prune_keep))
+             if value is not None]
     fixed += ["--" + f.replace("_", "-") for f in stage_options() if getattr(args, f) is not None]
     if fixed:
         raise GscodecError(f"{', '.join(fixed)} cannot be combined with a target: the rate controller chooses the "
-                           "SH stage settings and the grid order follows from the positions")
+                           "SH stage settings and the pruning, and the grid order follows from the positions")
     summary = encode_file_to_target(
         args.input, args.output, size=args.target_size, bpg=args.target_bpg, psnr=args.target_psnr,
         template=args.rate_point or TEMPLATE, cameras=args.cameras, up=tuple(comma_floats(args.up, "--up")),

@@ -175,8 +175,16 @@ def _cells(point: dict[str, Any]) -> dict[str, Any]:
     out["colour"] = point["color"]
     set_coded = attributes["positions"]["layout"] == "set"
     out["sort"] = "morton order of the positions" if set_coded else _sort(point["sort"])
-    out["prune"] = f"opacity < {point['prune']['min_opacity']:g}" if point["prune"]["min_opacity"] else "none"
+    out["prune"] = _prune(point["prune"])
     return out
+
+
+def _prune(prune: dict[str, float]) -> str:
+    """``opacity < 0.01, keep the most important 60%`` or ``none``."""
+    parts = [f"opacity < {prune['min_opacity']:g}"] if prune["min_opacity"] else []
+    if prune.get("keep_share", 1.0) < 1.0:
+        parts.append(f"keep the most important {100 * prune['keep_share']:g}%")
+    return ", ".join(parts) or "none"
 
 
 def _qp_bits(spec: dict[str, Any], codec: str) -> str:

@@ -21,8 +21,10 @@ positive-definite conic (guaranteed by the 0.3 dilation) ``power <= 0`` everywhe
 reference's ``power > 0`` test never fires and is not repeated per pixel. All in float64.
 
 Modes: ``MODE_IMAGE`` (colour, transmittance, depth, last contributor), ``MODE_COUNT``
-(contributions per pixel) and ``MODE_WEIGHTS`` (each contribution's Gaussian and weight
-``alpha * T``, written at ``indptr[pixel]``).
+(contributions per pixel), ``MODE_WEIGHTS`` (each contribution's Gaussian and weight
+``alpha * T``, written at ``indptr[pixel]``) and ``MODE_TOTALS`` (the weights ``alpha * T``
+summed over the pixels of a tile, per tile-list entry: a Gaussian is listed at most once per
+tile and a tile belongs to one thread, so the sums need no synchronisation).
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ from gscodec_shac.render.projection import (
 MODE_IMAGE = 0
 MODE_COUNT = 1
 MODE_WEIGHTS = 2
+MODE_TOTALS = 3
 #: Maximum alpha of one Gaussian and the transmittance at which a pixel stops (reference values).
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
@@ -148,6 +151,8 @@ def _raster_kernel(
                                     last[p] = e - start + 1
                                 elif mode == MODE_COUNT:
                                     cursor[p] += 1
+                                elif mode == MODE_TOTALS:
+                                    w_vals[e] += w
                                 else:
                                     w_cols[cursor[p]] = order[s]
                                     w_vals[cursor[p]] = w
@@ -238,3 +243,10 @@ def blend_weights(bins: TileBins, width: int, height: int) -> tuple[np.ndarray, 
     vals = np.empty(int(indptr[-1]))
     _run(MODE_WEIGHTS, bins, width, height, trans=trans, indptr=indptr, cols=cols, vals=vals)
     return indptr, cols, vals, trans
+
+
+def blend_totals(bins: TileBins, width: int, height: int, n: int) -> np.ndarray:
+    """(n,) each Gaussian's blending weights ``alpha * T`` summed over every pixel (one pass)."""
+    per_entry = np.zeros(bins.n_pairs)
+    _run(MODE_TOTALS, bins, width, height, vals=per_entry)
+    return np.bincount(bins.order[bins.ids], weights=per_entry, minlength=n)

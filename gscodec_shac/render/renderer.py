@@ -36,7 +36,7 @@ from gscodec_shac.render.projection import (
     camera_params,
     project_into,
 )
-from gscodec_shac.render.raster import blend_weights, rasterize
+from gscodec_shac.render.raster import blend_totals, blend_weights, rasterize
 from gscodec_shac.render.shading import view_colors
 
 _COV_CHUNK = 1 << 18
@@ -209,6 +209,14 @@ class Renderer:
         matrix.sort_indices()
         return matrix, trans
 
+    def contributions(self, camera: Camera) -> np.ndarray:
+        """(N,) each Gaussian's blending weights ``alpha_j T_j`` summed over the pixels of ``camera``.
+
+        The column sums of :meth:`weights`' matrix, accumulated inside the blend (no matrix).
+        """
+        frame = self.prepare(camera)
+        return blend_totals(frame.bins, camera.width, camera.height, self.num_gaussians)
+
 
 def _check_camera(camera: Camera) -> Camera:
     if not isinstance(camera, Camera):
@@ -284,4 +292,5 @@ def warmup() -> float:
     renderer = Renderer(cloud)
     renderer.render(camera, depth=True)
     renderer.weights(camera)
+    renderer.contributions(camera)
     return time.perf_counter() - start
