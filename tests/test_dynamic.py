@@ -450,13 +450,17 @@ def test_a_2_0_decoder_refuses_a_quantised_network(tmp_path: Path, dynamic_dir: 
     assert container.Bitstream.read(tmp_path / "f.gsc").version == (2, 0)
 
 
-def test_a_2_1_decoder_refuses_mixed_network_bits(tmp_path: Path, dynamic_dir: Path, monkeypatch) -> None:
+def test_a_2_1_decoder_refuses_mixed_network_bits(tmp_path: Path, dynamic_dir: Path, monkeypatch, capsys) -> None:
     """The release that wrote uniform quantised networks (format 2.1) does not know per-matrix bits."""
     from gscodec_shac.codec import container, encode_file
     from gscodec_shac.errors import BitstreamError
 
+    from gscodec_shac.cli import main
+
     encode_file(dynamic_dir, tmp_path / "m.gsc", "gsplat_png", network_bits=4)
     encode_file(dynamic_dir, tmp_path / "u.gsc", "gsplat_png", network_bits=8)
+    assert main(["info", str(tmp_path / "m.gsc")]) == 0
+    assert "4-bit per-row quantised, heads 8-bit)" in capsys.readouterr().out
     monkeypatch.delitem(container.FEATURES, "deformation_mixed_bits")
     with pytest.raises(BitstreamError, match="needs deformation_mixed_bits, which this version"):
         container.Bitstream.read(tmp_path / "m.gsc")

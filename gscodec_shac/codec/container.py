@@ -13,8 +13,8 @@ Layout (all integers little-endian)::
 
 Versions. A stream is written with the oldest version that can hold it: 1.0 when it
 uses no optional feature (so files that 1.0 decoders read stay byte-identical), else
-the newest version any of its features needs (:data:`FEATURE_VERSIONS`: 2.0, or 2.1 for a
-quantised deformation network). Version 2 headers are deflated (zlib; the header length and CRC are of the stored bytes)
+the newest version any of its features needs (:data:`FEATURE_VERSIONS`: 2.0, 2.1 for a
+quantised deformation network, 2.2 for one with a bit count per matrix). Version 2 headers are deflated (zlib; the header length and CRC are of the stored bytes)
 and lists in ``header["features"]`` the sorted names of the features the stream needs
 (see :data:`FEATURES`). A decoder refuses a feature it does not know, naming it, instead
 of decoding the stream wrongly.
@@ -119,7 +119,7 @@ class Bitstream:
 
     def write_version(self) -> tuple[int, int]:
         """The oldest version that holds this stream: 1.0 without optional features, else the newest
-        its features need (2.0 or 2.1)."""
+        its features need (2.0, 2.1 or 2.2)."""
         return max((FEATURE_VERSIONS.get(f, (2, 0)) for f in self.features), default=(1, 0))
 
     def header_bytes(self) -> bytes:

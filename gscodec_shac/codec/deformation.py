@@ -26,8 +26,9 @@ canonical centres (:mod:`.deformation_fit`); the decoder does not need to know.
 
 The chunk records ``encoding: zlib`` and ``raw_size`` (:func:`raw_size`, checked by
 :mod:`gscodec_shac.codec.header`). The stream needs the container feature ``deformation``
-(format 2.0), a quantised one also ``deformation_quantised`` (format 2.1), so a decoder that
-does not know them refuses the stream by name instead of decoding it wrongly.
+(format 2.0), a quantised one also ``deformation_quantised`` (format 2.1), one with bits per
+matrix also ``deformation_mixed_bits`` (format 2.2), so a decoder that does not know them
+refuses the stream by name instead of decoding it wrongly.
 """
 
 from __future__ import annotations

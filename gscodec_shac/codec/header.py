@@ -17,7 +17,8 @@ got -1``). What is checked, before anything is decoded or allocated:
   limit and against what deflate can produce from the stored bytes (at most 1032:1);
 * dynamic models (feature ``deformation``): the ``deformation`` header entry (architecture
   within :mod:`gscodec_shac.deform_arch`'s bounds, dtype float16, or uint8 with 2..8 bits and
-  the feature ``deformation_quantised``) comes with the feature and the zlib chunk
+  the feature ``deformation_quantised``, the bits a list of one per matrix exactly with the
+  feature ``deformation_mixed_bits``) comes with the feature and the zlib chunk
   ``deformation``, whose inflated size must be what that architecture and dtype need
   (:func:`gscodec_shac.codec.deformation.raw_size`);
 * the peak memory a decode needs (:meth:`StreamHeader.peak_memory`) is the decoder's to
