@@ -67,27 +67,34 @@ def fitted_codes(arch: DeformArch, weights: dict[str, np.ndarray], means: np.nda
     return codes, biases
 
 
+class _Reached(Exception):
+    """Raised by the statistics hook: the layers after the one measured need not run."""
+
+
 def _layer_statistics(net, layer, x, times) -> tuple[np.ndarray, np.ndarray]:
     """(``X^T X / n``, ``mean(X)``) of ``layer``'s inputs over the calibration points and times."""
     import torch
 
-    acc: dict[str, object] = {"gram": 0.0, "sum": 0.0, "n": 0}
+    width = layer.weight.shape[1]
+    gram, total, count = torch.zeros(width, width, dtype=torch.float64), torch.zeros(width, dtype=torch.float64), 0
 
     def hook(_module, inputs, _output) -> None:
-        value = inputs[0].reshape(-1, inputs[0].shape[-1])
-        acc["gram"] = acc["gram"] + value.T @ value
-        acc["sum"] = acc["sum"] + value.sum(dim=0)
-        acc["n"] = int(acc["n"]) + value.shape[0]
+        nonlocal gram, total, count
+        value = inputs[0].reshape(-1, width)
+        gram, total, count = gram + value.T @ value, total + value.sum(dim=0), count + value.shape[0]
+        raise _Reached
 
     handle = layer.register_forward_hook(hook)
     try:
         with torch.no_grad():
             for t in times:
-                net(x, float(t))
+                try:
+                    net(x, float(t))
+                except _Reached:
+                    pass
     finally:
         handle.remove()
-    n = max(int(acc["n"]), 1)
-    return (acc["gram"] / n).numpy(), (acc["sum"] / n).numpy()
+    return (gram / max(count, 1)).numpy(), (total / max(count, 1)).numpy()
 
 
 def gptq_rows(w: np.ndarray, gram: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
