@@ -398,6 +398,11 @@ def test_quantised_network_is_smaller_and_its_errors_are_bounded(dynamic_dir: Pa
                 assert np.all(np.abs(back[key] - value) <= bound), key
     assert sizes[16] > sizes[8] > sizes[6] > sizes[4]
     assert errors[16] < errors[8] < errors[6] < errors[4]
+    from gscodec_shac.codec.deformation import encoder_bits  # what encode writes: fitted, heads at 8 below 8
+
+    fitted = [add_deformation(Bitstream(), model.arch, weights, encoder_bits(model.arch, b), means=model.cloud.means)
+              for b in (8, 4, 3)]
+    assert sizes[16] > fitted[0] > fitted[1] > fitted[2] and fitted[1] < sizes[16] / 2.5
 
 
 @pytest.mark.parametrize("bits", [4, 3])
