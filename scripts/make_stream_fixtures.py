@@ -16,6 +16,8 @@ and compares the hashes (golden hashes). Run it once per container version, neve
 
     python scripts/make_stream_fixtures.py --version 1.0
     python scripts/make_stream_fixtures.py --version 2.0
+    python scripts/make_stream_fixtures.py --version 2.1
+    python scripts/make_stream_fixtures.py --version 2.2
 """
 
 from __future__ import annotations
@@ -56,7 +58,22 @@ CASES_V2: dict[str, dict] = {
     "auto_template_waterfill": {"input": "input_sh3.ply", "rate_point": "shac_auto:template", "sh": None, "params": {}},
     "ladder_rp4_sh0": {"input": "input_sh0.ply", "rate_point": "shac_ladder:rp4", "sh": None, "params": {}},
 }
-CASES = {"1.0": CASES_V1, "2.0": CASES_V2}
+#: Container 2.1 cases: a dynamic model (canonical Gaussians + the small network of
+#: ``network_small.npz``, architecture :data:`SMALL_ARCH`), network quantised to 8 bits per row
+#: (feature deformation_quantised).
+SMALL_ARCH = {"depth": 3, "width": 24, "xyz_freqs": 2, "t_freqs": 2, "time_net": True, "time_width": 16,
+              "time_out": 6}
+CASES_V21: dict[str, dict] = {
+    "dynamic_rp2_net8": {"input": "input_sh3.ply", "rate_point": "paper_table3:rp2", "sh": "none", "params": {},
+                         "network": "network_small.npz", "arch": SMALL_ARCH, "network_bits": 8},
+}
+#: Container 2.2 cases: the same network at 4 bits with the heads at 8 (feature deformation_mixed_bits),
+#: codes picked by quantisation-aware rounding.
+CASES_V22: dict[str, dict] = {
+    "dynamic_rp2_net4_heads8": {"input": "input_sh3.ply", "rate_point": "paper_table3:rp2", "sh": "none",
+                                "params": {}, "network": "network_small.npz", "arch": SMALL_ARCH, "network_bits": 4},
+}
+CASES = {"1.0": CASES_V1, "2.0": CASES_V2, "2.1": CASES_V21, "2.2": CASES_V22}
 
 
 def write_inputs() -> None:
@@ -75,8 +92,31 @@ def write_inputs() -> None:
                                      sh_dc=c.sh_dc, sh_rest=np.zeros((c.num_gaussians, 0, 3), np.float32)))
 
 
-def encode_case(case: dict) -> bytes:
-    """The stream of one case, encoded by the current code (single thread, no progress)."""
+def write_network() -> None:
+    """``network_small.npz``: seeded weights of :data:`SMALL_ARCH` (only when absent), each matrix
+    uniform in +-1/sqrt(fan-in) as PyTorch initialises it, the heads included."""
+    from gscodec_shac.deform_arch import DeformArch, weight_shapes
+
+    path = FIXTURES / "network_small.npz"
+    if path.exists():
+        return
+    rng = np.random.default_rng(11)
+    shapes = weight_shapes(DeformArch(**SMALL_ARCH))
+    bound = {name.rsplit(".", 1)[0]: 1.0 / np.sqrt(shape[1]) for name, shape in shapes if len(shape) == 2}
+    np.savez_compressed(path, **{name: rng.uniform(-1, 1, shape).astype(np.float32) * bound[name.rsplit(".", 1)[0]]
+                                 for name, shape in shapes})
+
+
+def network_inputs(case: dict) -> tuple:
+    """(architecture, weights) of a dynamic case."""
+    from gscodec_shac.deform_arch import DeformArch
+
+    with np.load(FIXTURES / case["network"]) as data:
+        return DeformArch(**case["arch"]), {k: data[k] for k in data.files}
+
+
+def encode_case(case: dict, workers: int = 1) -> bytes:
+    """The stream of one case, encoded by the current code (no progress)."""
     from gscodec_shac.io.ply import read_ply
     from gscodec_shac.codec import Encoder
 
@@ -85,16 +125,29 @@ def encode_case(case: dict) -> bytes:
     if rate_point.startswith("custom_points.yaml"):
         rate_point = str(FIXTURES / rate_point)
     encoder = Encoder(rate_point, sh_stage=case["sh"], sort=case.get("sort"),
-                      sh_params=case["params"] or None, workers=1)
-    return encoder.encode(cloud).to_bytes()
+                      sh_params=case["params"] or None, workers=workers)
+    stream = encoder.encode(cloud)
+    if "network" in case:
+        from gscodec_shac.codec.deformation import add_deformation, encoder_bits
+
+        arch, weights = network_inputs(case)
+        add_deformation(stream, arch, weights, encoder_bits(arch, case["network_bits"]), means=cloud.means)
+    return stream.to_bytes()
 
 
 def decoded_arrays(data: bytes) -> dict[str, np.ndarray]:
     from gscodec_shac.codec import Decoder
 
+    from gscodec_shac.codec import Bitstream
+    from gscodec_shac.codec.header import read_deformation, read_header
+
     cloud = Decoder(workers=1).decode(data)
-    return {"means": cloud.means, "scales": cloud.scales, "quats": cloud.quats, "opacities": cloud.opacities,
-            "sh_dc": cloud.sh_dc, "sh_rest": cloud.sh_rest}
+    arrays = {"means": cloud.means, "scales": cloud.scales, "quats": cloud.quats, "opacities": cloud.opacities,
+              "sh_dc": cloud.sh_dc, "sh_rest": cloud.sh_rest}
+    stream = Bitstream.from_bytes(data)
+    if "deformation" in stream.features:  # a dynamic stream: its network's weights too
+        arrays.update({f"network/{k}": v for k, v in read_deformation(stream, read_header(stream)).items()})
+    return arrays
 
 
 def main() -> None:
@@ -106,6 +159,7 @@ def main() -> None:
     out = FIXTURES / f"v{args.version}"
     out.mkdir(parents=True, exist_ok=True)
     write_inputs()
+    write_network()
     manifest = {"container_version": args.version, "cases": {}}
     for name, case in CASES[args.version].items():
         data = encode_case(case)

@@ -198,9 +198,15 @@ def test_encode_decode_render_info_rd_on_an_output_folder(tmp_path: Path, output
     decoded, source = load_dynamic_model(tmp_path / "dec"), load_dynamic_model(output)
     assert (tmp_path / "dec" / "deformation.json").is_file() and decoded.arch == source.arch
     assert decoded.cloud.num_gaussians == source.cloud.num_gaussians
-    for key, value in source.net.weights().items():  # the coded network: weights within their quantisation
-        step = (np.ptp(value, axis=-1, keepdims=True) if value.ndim == 2 else np.abs(value)) / 100.0
-        assert np.all(np.abs(decoded.net.weights()[key] - value) <= step + 1e-6), key
+    for key, value in source.net.weights().items():  # the coded network: matrices on their 8-bit row grids
+        if value.ndim == 2:  # (the fitted rounding may pick a grid value a few steps away; biases absorb the shift)
+            step = np.ptp(value, axis=-1, keepdims=True) / 255.0
+            assert np.abs(decoded.net.weights()[key] - value).mean() <= np.mean(step), key
+            assert np.all(np.abs(decoded.net.weights()[key] - value) <= 8 * step + 1e-3 * np.abs(value).max()), key
+    x = torch.from_numpy(decoded.cloud.means)  # ... and deforms the (reordered) Gaussians as the source does
+    with torch.no_grad():
+        got, want = decoded.net(x, 0.4)[0], source.net(x, 0.4)[0]
+    assert float((got - want).abs().max()) <= 0.02 * float(want.abs().max())
     # render --time on the folder == a static render of the reference formula's Gaussians
     cloud = source.cloud
     means, quats, scales = reference_deform(reference_state_dict(), cloud, 0.6, True)

@@ -332,12 +332,15 @@ def test_gsc_round_trip_of_a_dynamic_model(tmp_path: Path, dynamic_dir: Path, bi
     summary = encode_file(dynamic_dir, tmp_path / "d.gsc", "gsplat_png", network_bits=bits)
     static = encode_file(dynamic_dir / "point_cloud.ply", tmp_path / "s.gsc", "gsplat_png")
     stream = Bitstream.read(tmp_path / "d.gsc")
-    quantised = bits < 16
-    assert stream.version == ((2, 1) if quantised else (2, 0))
-    assert stream.features == ({"deformation", "deformation_quantised"} if quantised else {"deformation"})
+    quantised, mixed = bits < 16, bits < 8
+    assert stream.version == ((2, 2) if mixed else (2, 1) if quantised else (2, 0))
+    assert stream.features == ({"deformation"} | ({"deformation_quantised"} if quantised else set())
+                               | ({"deformation_mixed_bits"} if mixed else set()))
     view = read_header(stream)
     assert view.deformation is not None and view.deformation.arch == DeformArch(depth=4, width=32)
-    assert (view.deformation.dtype, view.deformation.bits) == (("uint8", bits) if quantised else ("float16", 16))
+    # below 8 bits the three heads keep 8 (the last three matrices)
+    per_matrix = (bits,) * 6 + (8,) * 3 if mixed else bits  # 2 time-net, 4 hidden, 3 head matrices
+    assert (view.deformation.dtype, view.deformation.bits) == (("uint8", per_matrix) if quantised else ("float16", 16))
     net_bytes = view.chunk_bytes["deformation"]
     assert 0 < net_bytes <= 2 * view.deformation.weights + 64
     # the network counts in the rate: the rest is the static stream (its header deflated in format 2.x)
@@ -355,13 +358,20 @@ def test_gsc_round_trip_of_a_dynamic_model(tmp_path: Path, dynamic_dir: Path, bi
         np.testing.assert_array_equal(getattr(back.cloud, name), getattr(static_cloud, name))
     for key, value in original.net.weights().items():
         got = back.net.weights()[key]
-        if not quantised or value.ndim == 1:  # float16 (biases stay float16 in the quantised form)
+        if not quantised:
             np.testing.assert_array_equal(got, value.astype(np.float16).astype(np.float32))
             continue
-        # per row: within half a step of 2^bits - 1 steps over the row's range (+ float16 rounding of lo, step)
-        span = value.max(axis=1, keepdims=True) - value.min(axis=1, keepdims=True)
-        assert np.all(np.abs(got - value) <= 0.5 * span / (2 ** bits - 1) * 1.01 + 1e-3 * np.abs(value).max()), key
-        assert len(np.unique(got[0])) <= 2 ** bits
+        if value.ndim == 1:  # float16; the fitted rounding moved each bias by its matrix's mean output shift
+            assert np.array_equal(got, got.astype(np.float16).astype(np.float32))
+            continue
+        # per row on a grid of 2^b values spanning the row's range (+ float16 rounding of lo and step); the
+        # fitted rounding may pick a farther grid value than the nearest, within the range
+        b = 8 if key.startswith("head_") else bits
+        lo, hi = value.min(axis=1, keepdims=True), value.max(axis=1, keepdims=True)
+        step, half = (hi - lo) / (2 ** b - 1), 1e-3 * np.abs(value).max()  # half: float16 rounding of lo, step
+        assert np.all((got >= lo - half) & (got <= hi + 1.01 * step + half)), key
+        assert np.abs(got - value).mean() <= np.mean(step), key
+        assert all(len(np.unique(row)) <= 2 ** b for row in got)
 
 
 def test_quantised_network_is_smaller_and_its_errors_are_bounded(dynamic_dir: Path) -> None:
@@ -381,8 +391,44 @@ def test_quantised_network_is_smaller_and_its_errors_are_bounded(dynamic_dir: Pa
         assert len(raw) == raw_size(model.arch, dtype, bits)
         back = decode_weights(raw, model.arch, dtype, bits)
         errors[bits] = max(float(np.abs(back[k] - v).max()) for k, v in weights.items() if v.ndim == 2)
+        for key, value in weights.items():  # plain rounding (no centres given): within half a step per row
+            if value.ndim == 2 and bits < 16:
+                span = value.max(axis=1, keepdims=True) - value.min(axis=1, keepdims=True)
+                bound = 0.5 * span / (2 ** bits - 1) * 1.01 + 1e-3 * np.abs(value).max()
+                assert np.all(np.abs(back[key] - value) <= bound), key
     assert sizes[16] > sizes[8] > sizes[6] > sizes[4]
     assert errors[16] < errors[8] < errors[6] < errors[4]
+    from gscodec_shac.codec.deformation import encoder_bits  # what encode writes: fitted, heads at 8 below 8
+
+    fitted = [add_deformation(Bitstream(), model.arch, weights, encoder_bits(model.arch, b), means=model.cloud.means)
+              for b in (8, 4, 3)]
+    assert sizes[16] > fitted[0] > fitted[1] > fitted[2] and fitted[1] < sizes[16] / 2.5
+
+
+@pytest.mark.parametrize("bits", [4, 3])
+def test_fitted_rounding_keeps_the_deformation_closer_than_plain_rounding(dynamic_dir: Path, bits: int) -> None:
+    """Quantisation-aware rounding (the encoder has the centres) deforms the model's own Gaussians closer
+    to the float network than rounding each weight to its nearest grid value, and decodes as the same form."""
+    import zlib
+
+    from gscodec_shac.codec.container import Bitstream
+    from gscodec_shac.codec.deformation import add_deformation, decode_weights
+
+    model = load_dynamic_model(dynamic_dir)
+    x = torch.from_numpy(model.cloud.means.astype(np.float32))
+    with torch.no_grad():
+        want = [torch.cat(model.net(x, t), 1) for t in (0.1, 0.45, 0.9)]
+    errors = {}
+    for fit in (False, True):
+        stream = Bitstream()
+        add_deformation(stream, model.arch, model.net.weights(), bits, means=model.cloud.means if fit else None)
+        entry = stream.header["deformation"]
+        net = DeformNetwork(model.arch)
+        net.load_weights(decode_weights(zlib.decompress(stream.chunk("deformation").data), model.arch,
+                                        entry["dtype"], entry["bits"]))
+        with torch.no_grad():
+            errors[fit] = float(sum(((torch.cat(net(x, t), 1) - w) ** 2).mean() for t, w in zip((0.1, 0.45, 0.9), want)))
+    assert errors[True] < 0.8 * errors[False]
 
 
 def test_old_decoder_refuses_a_dynamic_stream(tmp_path: Path, dynamic_dir: Path, monkeypatch) -> None:
@@ -409,6 +455,23 @@ def test_a_2_0_decoder_refuses_a_quantised_network(tmp_path: Path, dynamic_dir: 
     assert container.Bitstream.read(tmp_path / "f.gsc").version == (2, 0)
 
 
+def test_a_2_1_decoder_refuses_mixed_network_bits(tmp_path: Path, dynamic_dir: Path, monkeypatch, capsys) -> None:
+    """The release that wrote uniform quantised networks (format 2.1) does not know per-matrix bits."""
+    from gscodec_shac.codec import container, encode_file
+    from gscodec_shac.errors import BitstreamError
+
+    from gscodec_shac.cli import main
+
+    encode_file(dynamic_dir, tmp_path / "m.gsc", "gsplat_png", network_bits=4)
+    encode_file(dynamic_dir, tmp_path / "u.gsc", "gsplat_png", network_bits=8)
+    assert main(["info", str(tmp_path / "m.gsc")]) == 0
+    assert "4-bit per-row quantised, heads 8-bit)" in capsys.readouterr().out
+    monkeypatch.delitem(container.FEATURES, "deformation_mixed_bits")
+    with pytest.raises(BitstreamError, match="needs deformation_mixed_bits, which this version"):
+        container.Bitstream.read(tmp_path / "m.gsc")
+    assert container.Bitstream.read(tmp_path / "u.gsc").version == (2, 1)
+
+
 def _corrupt(stream, edit) -> None:
     from gscodec_shac.codec.container import Bitstream
     from gscodec_shac.codec.header import read_header
@@ -430,7 +493,7 @@ def _corrupt(stream, edit) -> None:
     (lambda s: s.chunk("deformation").meta.update(raw_size=10), "raw_size"),
     (lambda s: s.header["deformation"]["arch"].update(width=33), "raw_size"),
 ])
-@pytest.mark.parametrize("bits", [16, 8])
+@pytest.mark.parametrize("bits", [16, 8, 4])
 def test_header_validates_the_deformation_chunk(tmp_path: Path, dynamic_dir: Path, edit, message: str,
                                                 bits: int) -> None:
     from gscodec_shac.codec import encode_file
@@ -443,6 +506,49 @@ def test_header_validates_the_deformation_chunk(tmp_path: Path, dynamic_dir: Pat
     stream = Bitstream.read(tmp_path / "d.gsc")
     with pytest.raises(BitstreamError, match=message):
         _corrupt(stream, edit)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda s: s.header["deformation"].update(bits=s.header["deformation"]["bits"][:-1]), "8 values for the .* 9"),
+    (lambda s: s.header["deformation"].update(bits=s.header["deformation"]["bits"][:-1] + [9]), "in 2..8"),
+    (lambda s: s.header["deformation"].update(bits=s.header["deformation"]["bits"][:-1] + ["8"]), "in 2..8"),
+    (lambda s: s.header["deformation"].update(bits=4), "list of bits and the 'deformation_mixed_bits'"),
+    (lambda s: s.features.discard("deformation_mixed_bits"), "list of bits and the 'deformation_mixed_bits'"),
+    (lambda s: s.header["deformation"].update(bits=[4] * 6 + [2] * 3), "raw_size"),
+    (lambda s: s.header["deformation"].update(dtype="float16") or s.features.discard("deformation_quantised"),
+     "'deformation_mixed_bits' feature needs the quantised form"),
+])
+def test_header_validates_mixed_network_bits(tmp_path: Path, dynamic_dir: Path, edit, message: str) -> None:
+    from gscodec_shac.codec import encode_file
+    from gscodec_shac.codec.container import Bitstream
+    from gscodec_shac.errors import BitstreamError
+
+    encode_file(dynamic_dir, tmp_path / "d.gsc", "gsplat_png", network_bits=4)
+    with pytest.raises(BitstreamError, match=message):
+        _corrupt(Bitstream.read(tmp_path / "d.gsc"), edit)
+
+
+def test_a_truncated_network_chunk_is_refused(tmp_path: Path, dynamic_dir: Path) -> None:
+    """A network chunk cut short or with flipped bytes: one clear error, from the library and the CLI."""
+    from gscodec_shac.cli import main
+    from gscodec_shac.codec import decode_file, encode_file
+    from gscodec_shac.codec.container import Bitstream
+    from gscodec_shac.errors import BitstreamError
+
+    encode_file(dynamic_dir, tmp_path / "d.gsc", "gsplat_png", network_bits=4)
+    for name, cut in (("short", lambda d: d[: len(d) // 2]), ("flipped", lambda d: d[:10] + bytes(b ^ 0x5A for b in d[10:]))):
+        stream = Bitstream.read(tmp_path / "d.gsc")
+        chunk = stream.chunk("deformation")
+        chunk.data = cut(chunk.data)
+        stream.write(tmp_path / f"{name}.gsc")
+        with pytest.raises(BitstreamError, match="corrupt .gsc file.*deformation"):
+            decode_file(tmp_path / f"{name}.gsc", tmp_path / f"{name}_out")
+        assert not (tmp_path / f"{name}_out").exists()
+        assert main(["decode", str(tmp_path / f"{name}.gsc"), str(tmp_path / f"{name}_cli")]) != 0
+    data = (tmp_path / "d.gsc").read_bytes()
+    (tmp_path / "cut.gsc").write_bytes(data[: len(data) - 40])  # the file itself cut: the container refuses it
+    with pytest.raises(BitstreamError):
+        decode_file(tmp_path / "cut.gsc", tmp_path / "cut_out")
 
 
 def test_commands_accept_a_model_directory(tmp_path: Path, dynamic_dir: Path, capsys) -> None:

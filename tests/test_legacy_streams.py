@@ -27,7 +27,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gscodec_shac.codec.deformation import add_deformation, encoder_bits
 from gscodec_shac.codec.grid.base import get_codec
+from gscodec_shac.codec.header import read_deformation, read_header
+from gscodec_shac.deform_arch import DeformArch
 from gscodec_shac.io.ply import read_ply
 from gscodec_shac.codec import Bitstream, Decoder, Encoder
 
@@ -37,6 +40,12 @@ CASES = [(folder, name) for folder in VERSIONS for name in json.loads((folder / 
 ARRAYS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
 #: Arrays that come out of a stage's matrix product, by SH stage.
 PRODUCTS = {"pca": ("sh_rest", "sh_dc")}
+
+
+def network_inputs(case: dict) -> tuple[DeformArch, dict[str, np.ndarray]]:
+    """(architecture, weights) of a dynamic case (``scripts/make_stream_fixtures.py``)."""
+    with np.load(FIXTURES / case["network"]) as data:
+        return DeformArch(**case["arch"]), {k: data[k] for k in data.files}
 
 
 def _manifest(folder: Path) -> dict:
@@ -58,6 +67,13 @@ def test_legacy_stream_decodes_to_the_stored_arrays(folder, name):
                 assert np.abs(got - want).max() <= 4 * ulp, f"{name}: {key} changed beyond float32 rounding"
             else:
                 assert got.tobytes() == want.tobytes(), f"{name}: {key} changed"
+        stored = sorted(k for k in expected.files if k.startswith("network/"))
+        if stored:  # a dynamic stream: the network's weights too, bit for bit
+            stream = Bitstream.from_bytes(data)
+            weights = read_deformation(stream, read_header(stream))
+            assert sorted(f"network/{k}" for k in weights) == stored
+            for key in stored:
+                assert weights[key[len("network/"):]].tobytes() == expected[key].tobytes(), f"{name}: {key} changed"
 
 
 @pytest.mark.parametrize("folder, name", CASES, ids=[f"{f.name}-{n}" for f, n in CASES])
@@ -74,6 +90,10 @@ def test_encoding_the_fixture_inputs_gives_the_golden_bytes(folder, name):
     for workers in (1, 2):
         encoder = Encoder(rate_point, sh_stage=case["sh"], sort=case.get("sort"), sh_params=case["params"] or None,
                           workers=workers)
-        data = encoder.encode(cloud).to_bytes()
+        stream = encoder.encode(cloud)
+        if "network" in case:
+            arch, weights = network_inputs(case)
+            add_deformation(stream, arch, weights, encoder_bits(arch, case["network_bits"]), means=cloud.means)
+        data = stream.to_bytes()
         golden = case.get("encoder_sha256", case["sha256"])
         assert hashlib.sha256(data).hexdigest() == golden, f"{name}: encoding changed (workers={workers})"

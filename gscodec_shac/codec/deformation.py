@@ -7,18 +7,28 @@ by the header entry ``deformation`` = ``{"arch": {...}, "dtype": ..., ["bits": B
 
 * ``dtype: "float16"`` (format 2.0): every weight as little-endian float16;
 * ``dtype: "uint8"`` (format 2.1, feature ``deformation_quantised``): each weight matrix
-  quantised per output channel (row) to ``B``-bit integers (2 <= B <= 8, one byte each)
-  with ``w = lo + code * step``; ``lo`` and ``step`` per row, and every bias vector, as
+  quantised per output channel (row) to ``B``-bit integers (2 <= B <= 8) with
+  ``w = lo + code * step``; ``lo`` and ``step`` per row, and every bias vector, as
   float16. Layout: for each tensor in order its float16 part (a matrix's ``lo`` of every
   row, then its ``step`` of every row; a vector's values), then the codes of every matrix
-  in order, row-major, packed at ``B`` bits each (most significant bit first; the last
-  byte padded with zeros). Packing matters: deflate's byte-wise Huffman codes lose up to
-  14% on 4-6-bit codes stored one per byte (measured on a trained network, docs/dynamic.md).
+  in order, row-major, packed at its ``B`` bits each (most significant bit first) into one
+  bit string, the last byte padded with zeros. Packing matters: deflate's byte-wise Huffman
+  codes lose up to 14% on 4-6-bit codes stored one per byte (measured on a trained network,
+  docs/dynamic.md).
+* the same with ``bits`` a list, one ``B`` per matrix in order (format 2.2, feature
+  ``deformation_mixed_bits``): the encoder keeps the three small output heads at
+  :data:`HEAD_BITS` when the other matrices get fewer, since a head's rounding error reaches the
+  deformation directly (per-layer sensitivity in docs/dynamic.md). A list whose values are all
+  equal is written as the single ``B`` of format 2.1 (the same bytes).
+
+The encoder picks the codes on each row's grid by quantisation-aware rounding when it has the
+canonical centres (:mod:`.deformation_fit`); the decoder does not need to know.
 
 The chunk records ``encoding: zlib`` and ``raw_size`` (:func:`raw_size`, checked by
 :mod:`gscodec_shac.codec.header`). The stream needs the container feature ``deformation``
-(format 2.0), a quantised one also ``deformation_quantised`` (format 2.1), so a decoder that
-does not know them refuses the stream by name instead of decoding it wrongly.
+(format 2.0), a quantised one also ``deformation_quantised`` (format 2.1), one with bits per
+matrix also ``deformation_mixed_bits`` (format 2.2), so a decoder that does not know them
+refuses the stream by name instead of decoding it wrongly.
 """
 
 from __future__ import annotations
@@ -33,10 +43,15 @@ from gscodec_shac.errors import ModelFormatError
 CHUNK = "deformation"
 FEATURE = "deformation"
 QUANTISED_FEATURE = "deformation_quantised"
+MIXED_FEATURE = "deformation_mixed_bits"
 DTYPES = ("float16", "uint8")
 #: ``bits`` of the ``uint8`` form; 16 stands for float16 (the ``--network-bits`` values).
 MIN_BITS, MAX_BITS = 2, 8
 DEFAULT_BITS = 8
+#: Bits of the output heads' matrices when the others get fewer (format 2.2).
+HEAD_BITS = 8
+HEADS = ("head_xyz.weight", "head_rot.weight", "head_scale.weight")
+Bits = int | tuple[int, ...]
 
 
 def dtype_of(bits: int) -> str:
@@ -48,11 +63,31 @@ def dtype_of(bits: int) -> str:
     raise ValueError(f"network bits must be 16 (float16) or {MIN_BITS}..{MAX_BITS}, got {bits!r}")
 
 
-def raw_size(arch: DeformArch, dtype: str, bits: int = 16) -> int:
+def matrix_bits(arch: DeformArch, bits: Bits) -> tuple[int, ...]:
+    """Bits of every matrix in order: ``bits`` itself when a tuple, else ``bits`` for each."""
+    count = len(_matrices(arch))
+    if isinstance(bits, tuple):
+        if len(bits) != count:
+            raise ValueError(f"{len(bits)} network bit counts for {count} matrices")
+        return bits
+    return (bits,) * count
+
+
+def encoder_bits(arch: DeformArch, bits: int) -> Bits:
+    """What the encoder writes for ``--network-bits bits``: the heads at :data:`HEAD_BITS` when ``bits``
+    is lower (a tuple, format 2.2), else ``bits`` (16: float16; 8: uniform, format 2.1)."""
+    dtype_of(bits)
+    if bits == 16 or bits >= HEAD_BITS:
+        return bits
+    return tuple(HEAD_BITS if name in HEADS else bits for name in _matrices(arch))
+
+
+def raw_size(arch: DeformArch, dtype: str, bits: Bits = 16) -> int:
     """Bytes of the inflated chunk for ``arch`` in form ``dtype`` with ``bits`` (from the sizes alone)."""
     if dtype == "float16":
         return 2 * weight_count(arch)
-    return _half_bytes(arch) + (_code_count(arch) * bits + 7) // 8
+    code_bits = sum(b * s[0] * s[1] for b, s in zip(matrix_bits(arch, bits), _matrices(arch).values()))
+    return _half_bytes(arch) + (code_bits + 7) // 8
 
 
 def quantise_rows(value: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -74,69 +109,94 @@ def quantise_rows(value: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray,
 
 
 def add_deformation(stream: Bitstream, arch: DeformArch, weights: dict[str, np.ndarray],
-                    bits: int = DEFAULT_BITS) -> int:
+                    bits: Bits = DEFAULT_BITS, means: np.ndarray | None = None) -> int:
     """Append the network chunk + header entry to ``stream``; returns the chunk's size in bytes.
 
-    ``bits``: 16 for float16, 2..8 for the per-row quantised form."""
-    dtype = dtype_of(bits)
-    halves, codes = [], []
+    ``bits``: 16 for float16, 2..8 for the per-row quantised form, or a tuple of 2..8 per matrix.
+    ``means``: the canonical centres; when given (and the form is quantised) the codes are chosen
+    by quantisation-aware rounding (:mod:`.deformation_fit`), else by plain rounding."""
+    dtype = "uint8" if isinstance(bits, tuple) else dtype_of(bits)
+    per_matrix = matrix_bits(arch, bits) if dtype == "uint8" else ()
+    if any(not (MIN_BITS <= b <= MAX_BITS) for b in per_matrix):
+        raise ValueError(f"network bits per matrix must be {MIN_BITS}..{MAX_BITS}, got {per_matrix}")
+    for name, shape in weight_shapes(arch):
+        if np.shape(weights[name]) != shape:
+            raise ValueError(f"deformation weight {name} has shape {np.shape(weights[name])}, expected {shape}")
+    fitted: dict = {}
+    if dtype == "uint8" and means is not None and len(means):
+        from gscodec_shac.codec.deformation_fit import fitted_codes
+
+        codes_of, biases = fitted_codes(arch, weights, means, dict(zip(_matrices(arch), per_matrix)))
+        fitted, weights = codes_of, {**weights, **biases}
+    halves, packed, widths = [], [], iter(per_matrix)
     for name, shape in weight_shapes(arch):
         value = np.asarray(weights[name], dtype=np.float32)
-        if value.shape != shape:
-            raise ValueError(f"deformation weight {name} has shape {value.shape}, expected {shape}")
         if dtype == "float16" or value.ndim == 1:
             halves.append(value.astype("<f2").tobytes())
             continue
-        lo, step, code = quantise_rows(value, bits)
+        width = next(widths)
+        lo, step, code = fitted[name] if name in fitted else quantise_rows(value, width)
         halves += [lo.astype("<f2").tobytes(), step.astype("<f2").tobytes()]
-        codes.append(code.ravel())
-    raw = b"".join(halves) + (pack_codes(np.concatenate(codes), bits) if codes else b"")
-    assert len(raw) == raw_size(arch, dtype, bits)
+        packed.append((code.ravel(), width))
+    raw = b"".join(halves) + pack_codes(packed)
+    uniform = len(set(per_matrix)) <= 1
+    header_bits = (per_matrix[0] if per_matrix else 16) if uniform else list(per_matrix)
+    assert len(raw) == raw_size(arch, dtype, header_bits if uniform else per_matrix)
     data = zlib.compress(raw, 9)
     stream.add_chunk(CHUNK, data, attribute=CHUNK, encoding="zlib", raw_size=len(raw))
-    stream.header[CHUNK] = {"arch": arch.to_dict(), "dtype": dtype, **({"bits": bits} if dtype == "uint8" else {})}
+    stream.header[CHUNK] = {"arch": arch.to_dict(), "dtype": dtype, **({"bits": header_bits} if dtype == "uint8" else {})}
     stream.require(FEATURE)
     if dtype == "uint8":
         stream.require(QUANTISED_FEATURE)
+    if not uniform:
+        stream.require(MIXED_FEATURE)
     return len(data)
 
 
-def pack_codes(codes: np.ndarray, bits: int) -> bytes:
-    """``codes`` (uint8, each < 2^bits) packed at ``bits`` bits each, most significant bit first."""
-    if bits == 8:
-        return codes.astype(np.uint8).tobytes()
-    planes = (codes[:, None] >> np.arange(bits - 1, -1, -1, dtype=np.uint8)) & 1
-    return np.packbits(planes.astype(np.uint8).ravel()).tobytes()
+def pack_codes(parts: list[tuple[np.ndarray, int]]) -> bytes:
+    """Each ``(codes, bits)`` part (uint8 codes, each < 2^bits) at ``bits`` bits per code, most
+    significant bit first, all parts in one bit string (zero-padded to whole bytes)."""
+    if parts and all(bits == 8 for _, bits in parts):
+        return np.concatenate([c for c, _ in parts]).astype(np.uint8).tobytes()
+    planes = [((c[:, None] >> np.arange(b - 1, -1, -1, dtype=np.uint8)) & 1).astype(np.uint8).ravel()
+              for c, b in parts]
+    return np.packbits(np.concatenate(planes)).tobytes() if planes else b""
 
 
-def unpack_codes(data: bytes, count: int, bits: int) -> np.ndarray:
-    """The ``count`` codes of :func:`pack_codes` (uint8)."""
-    if bits == 8:
-        return np.frombuffer(data, dtype=np.uint8, count=count)
-    planes = np.unpackbits(np.frombuffer(data, dtype=np.uint8), count=count * bits).reshape(count, bits)
-    return (planes << np.arange(bits - 1, -1, -1, dtype=np.uint8)).sum(axis=1, dtype=np.uint8)
+def unpack_codes(data: bytes, counts: list[int], bits: list[int]) -> list[np.ndarray]:
+    """The codes of :func:`pack_codes`: ``counts[i]`` codes at ``bits[i]`` bits for each part (uint8)."""
+    total = sum(n * b for n, b in zip(counts, bits))
+    if all(b == 8 for b in bits):
+        flat = np.frombuffer(data, dtype=np.uint8, count=total // 8)
+        return np.split(flat, np.cumsum(counts)[:-1])
+    stream = np.unpackbits(np.frombuffer(data, dtype=np.uint8), count=total)
+    out, at = [], 0
+    for n, b in zip(counts, bits):
+        planes = stream[at : at + n * b].reshape(n, b)
+        out.append((planes << np.arange(b - 1, -1, -1, dtype=np.uint8)).sum(axis=1, dtype=np.uint8))
+        at += n * b
+    return out
 
 
-def decode_weights(raw: bytes, arch: DeformArch, dtype: str = "float16", bits: int = 16) -> dict[str, np.ndarray]:
+def decode_weights(raw: bytes, arch: DeformArch, dtype: str = "float16", bits: Bits = 16) -> dict[str, np.ndarray]:
     """The float32 weights from the inflated chunk (its size is checked by the header validator)."""
     out: dict[str, np.ndarray] = {}
     halves = np.frombuffer(raw, dtype="<f2", count=(len(raw) if dtype == "float16" else _half_bytes(arch)) // 2)
-    offset, code_offset = 0, 0
+    offset = 0
     if dtype != "float16":
-        all_codes = unpack_codes(raw[2 * len(halves):], _code_count(arch), bits)
+        shapes = list(_matrices(arch).values())
+        codes = iter(unpack_codes(raw[2 * len(halves):], [r * c for r, c in shapes], list(matrix_bits(arch, bits))))
     for name, shape in weight_shapes(arch):
         if dtype == "float16" or len(shape) == 1:
             size = int(np.prod(shape))
             out[name] = halves[offset : offset + size].astype(np.float32).reshape(shape)
             offset += size
             continue
-        rows, cols = shape
+        rows = shape[0]
         lo = halves[offset : offset + rows].astype(np.float32)
         step = halves[offset + rows : offset + 2 * rows].astype(np.float32)
         offset += 2 * rows
-        codes = all_codes[code_offset : code_offset + rows * cols].reshape(shape)
-        code_offset += rows * cols
-        out[name] = (lo[:, None] + codes.astype(np.float32) * step[:, None]).astype(np.float32)
+        out[name] = (lo[:, None] + next(codes).reshape(shape).astype(np.float32) * step[:, None]).astype(np.float32)
     return out
 
 
@@ -145,7 +205,7 @@ def _half_bytes(arch: DeformArch) -> int:
     return sum(4 * s[0] if len(s) == 2 else 2 * s[0] for _, s in weight_shapes(arch))
 
 
-def _code_count(arch: DeformArch) -> int:
-    """Weights of the quantised form's matrices (one code each)."""
-    return sum(s[0] * s[1] for _, s in weight_shapes(arch) if len(s) == 2)
+def _matrices(arch: DeformArch) -> dict[str, tuple[int, int]]:
+    """``{name: shape}`` of the weight matrices in order (the quantised form codes these)."""
+    return {name: shape for name, shape in weight_shapes(arch) if len(shape) == 2}
 

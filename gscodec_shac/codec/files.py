@@ -45,9 +45,10 @@ def encode_file(
     parameters (e.g. ``energy_retention=0.99``); ``preset`` sets the lossy
     codecs' speed preset (x265's ``preset`` option). ``choose_sh``, when given, picks
     ``(stage, params)`` from the model read (the default encode, :mod:`.defaults`);
-    ``network_bits`` how a dynamic model's network is stored (16: float16, 2..8: quantised;
-    default 8, :mod:`.deformation`). ``keep_share`` overrides the rate point's importance pruning
-    (:mod:`.importance`), measured on ``cameras`` (any camera file) or else orbit views around ``up``.
+    ``network_bits`` how a dynamic model's network is stored (16: float16, 2..8: quantised,
+    the output heads at 8 bits below 8; default 8, :mod:`.deformation`). ``keep_share`` overrides
+    the rate point's importance pruning (:mod:`.importance`), measured on ``cameras`` (any camera
+    file) or else orbit views around ``up``.
     """
     from gscodec_shac.deform_arch import is_dynamic_model
     from gscodec_shac.io.models import read_model
@@ -77,10 +78,10 @@ def encode_file(
                       codec_options={"preset": preset} if preset else None, progress=progress, views=views)
     stream = encoder.encode(cloud)
     if dynamic is not None:
-        from gscodec_shac.codec.deformation import DEFAULT_BITS
+        from gscodec_shac.codec.deformation import DEFAULT_BITS, encoder_bits
 
-        add_deformation(stream, dynamic.arch, dynamic.net.weights(),
-                        DEFAULT_BITS if network_bits is None else network_bits)
+        bits = encoder_bits(dynamic.arch, DEFAULT_BITS if network_bits is None else network_bits)
+        add_deformation(stream, dynamic.arch, dynamic.net.weights(), bits, means=cloud.means)
     with inputs_protected(in_ply, *([cameras] if cameras is not None else [])):
         size = stream.write(out_gsc)
     return {

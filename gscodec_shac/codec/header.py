@@ -17,7 +17,8 @@ got -1``). What is checked, before anything is decoded or allocated:
   limit and against what deflate can produce from the stored bytes (at most 1032:1);
 * dynamic models (feature ``deformation``): the ``deformation`` header entry (architecture
   within :mod:`gscodec_shac.deform_arch`'s bounds, dtype float16, or uint8 with 2..8 bits and
-  the feature ``deformation_quantised``) comes with the feature and the zlib chunk
+  the feature ``deformation_quantised``, the bits a list of one per matrix exactly with the
+  feature ``deformation_mixed_bits``) comes with the feature and the zlib chunk
   ``deformation``, whose inflated size must be what that architecture and dtype need
   (:func:`gscodec_shac.codec.deformation.raw_size`);
 * the peak memory a decode needs (:meth:`StreamHeader.peak_memory`) is the decoder's to
@@ -126,8 +127,9 @@ class DeformationEntry:
     arch: DeformArch
     dtype: str
     weights: int
-    #: Bits per quantised weight (``uint8``), 16 for ``float16``.
-    bits: int = 16
+    #: Bits per quantised weight (``uint8``): one for every matrix, or one per matrix in order
+    #: (feature ``deformation_mixed_bits``); 16 for ``float16``.
+    bits: int | tuple[int, ...] = 16
 
 
 @dataclass(frozen=True)
@@ -478,26 +480,43 @@ def _chunk_plan(meta: dict, name: str, attribute: AttributeEntry, shape: tuple[i
 def _deformation(value: Any, features: set[str]) -> DeformationEntry | None:
     """The ``deformation`` entry: present exactly when the stream needs the ``deformation`` feature;
     quantised (uint8) exactly when it also needs ``deformation_quantised``."""
-    from gscodec_shac.codec.deformation import DTYPES, MAX_BITS, MIN_BITS, QUANTISED_FEATURE
+    from gscodec_shac.codec.deformation import DTYPES, MIXED_FEATURE, QUANTISED_FEATURE
 
     if (value is not None) != ("deformation" in features):
         raise HEADER.error("deformation", "the deformation entry and the 'deformation' feature come together")
     if value is None:
-        if QUANTISED_FEATURE in features:
-            raise HEADER.error("deformation", f"the {QUANTISED_FEATURE!r} feature needs a deformation entry")
+        for feature in (QUANTISED_FEATURE, MIXED_FEATURE):
+            if feature in features:
+                raise HEADER.error("deformation", f"the {feature!r} feature needs a deformation entry")
         return None
     entry = HEADER.mapping(value, "deformation", optional=False)
     dtype = HEADER.choice(entry.get("dtype"), DTYPES, "deformation.dtype")
     if (dtype == "uint8") != (QUANTISED_FEATURE in features):
         raise HEADER.error("deformation.dtype", f"dtype uint8 and the {QUANTISED_FEATURE!r} feature come together")
-    bits = HEADER.integer(entry.get("bits"), "deformation.bits", MIN_BITS, MAX_BITS) if dtype == "uint8" else 16
+    if MIXED_FEATURE in features and dtype != "uint8":
+        raise HEADER.error("deformation.dtype", f"the {MIXED_FEATURE!r} feature needs the quantised form (uint8)")
     try:
         arch = DeformArch.from_dict(entry.get("arch"))
     except GscodecError as exc:
         raise HEADER.error("deformation.arch", str(exc)) from None
     except TypeError as exc:
         raise HEADER.error("deformation.arch", f"malformed ({exc})") from None
+    bits = _deformation_bits(entry.get("bits"), arch, features) if dtype == "uint8" else 16
     return DeformationEntry(arch, dtype, weight_count(arch), bits)
+
+
+def _deformation_bits(value: Any, arch: DeformArch, features: set[str]) -> int | tuple[int, ...]:
+    """``deformation.bits``: one count (2..8), or with ``deformation_mixed_bits`` a list of one per matrix."""
+    from gscodec_shac.codec.deformation import MAX_BITS, MIN_BITS, MIXED_FEATURE, matrix_bits
+
+    if (MIXED_FEATURE in features) != isinstance(value, list):
+        raise HEADER.error("deformation.bits", f"a list of bits and the {MIXED_FEATURE!r} feature come together")
+    if not isinstance(value, list):
+        return HEADER.integer(value, "deformation.bits", MIN_BITS, MAX_BITS)
+    count = len(matrix_bits(arch, MIN_BITS))
+    if len(value) != count:
+        raise HEADER.error("deformation.bits", f"{len(value)} values for the architecture's {count} matrices")
+    return tuple(HEADER.integer(v, "deformation.bits", MIN_BITS, MAX_BITS) for v in value)
 
 
 def _zlib_chunks(stream: Bitstream, attributes: dict[str, AttributeEntry], sh: ShEntry | None, padding: str,

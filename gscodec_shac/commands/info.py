@@ -123,7 +123,11 @@ def _compare(args: argparse.Namespace) -> int:
 def _deformation_line(info: dict[str, Any]) -> str:
     arch = info["arch"]
     dtype = info.get("dtype", "float16")
-    form = f"{info['bits']}-bit per-row quantised" if dtype == "uint8" else dtype
+    bits = info.get("bits")
+    form = f"{bits}-bit per-row quantised" if dtype == "uint8" else dtype
+    if isinstance(bits, (list, tuple)):  # one per matrix (format 2.2): the output heads are the last three
+        body, heads = ("/".join(map(str, sorted(set(part)))) for part in (bits[:-3], bits[-3:]))
+        form = f"{body}-bit per-row quantised, heads {heads}-bit"
     stored = f"{info['bytes']:,} bytes ({form})" if "bytes" in info else \
         f"{info['float32_bytes']:,} bytes as float32"
     return (f"deformation       MLP {arch['depth']}x{arch['width']}"

@@ -62,12 +62,17 @@ def load_state_dict(pth: PathLike) -> dict[str, np.ndarray]:
     """The tensors of a ``deform.pth`` as float32 arrays by key (``torch.load(weights_only=True)``)."""
     import torch
 
+    from gscodec_shac.io.bounded import read_file
+
     pth = Path(pth)
-    size = pth.stat().st_size
-    if size > MAX_PTH_BYTES:
-        raise ModelFormatError(f"{pth}: {size:,} bytes, more than a deformation network ({MAX_PTH_BYTES:,} at most)")
+    raw = read_file(pth, MAX_PTH_BYTES, "deform.pth (a deformation network)")
+    if raw[:4] == b"PK\x03\x04":  # torch.save's zip stores its records: they inflate to no more than the file
+        from gscodec_shac.io.bounded import BoundedZip
+
+        with BoundedZip(pth, max_members=1 << 16, max_total=len(raw)):
+            pass
     try:
-        data = torch.load(io.BytesIO(pth.read_bytes()), map_location="cpu", weights_only=True)
+        data = torch.load(io.BytesIO(raw), map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for foreign or corrupt files
         first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
         raise ModelFormatError(f"{pth}: not a readable torch state dict ({first})") from None

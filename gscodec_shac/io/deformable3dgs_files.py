@@ -12,6 +12,7 @@ import re
 from pathlib import Path
 
 from gscodec_shac.errors import ModelFormatError
+from gscodec_shac.io.bounded import member_path
 
 PathLike = str | os.PathLike
 PLY_DIR, DEFORM_DIR = "point_cloud", "deform"
@@ -57,8 +58,9 @@ def iteration_files(path: PathLike) -> tuple[Path, Path, int]:
         if not saved:
             raise ModelFormatError(f"{root}: no {PLY_DIR}/iteration_N/{PLY_NAME} (nothing saved yet?)")
         number = saved[-1]
-    ply = root / PLY_DIR / f"iteration_{number}" / PLY_NAME
-    pth = root / DEFORM_DIR / f"iteration_{number}" / DEFORM_NAME
+    # a file that is a symlink leaving the folder is refused, as in our model directories
+    ply = member_path(root, f"{PLY_DIR}/iteration_{number}/{PLY_NAME}", str(root))
+    pth = member_path(root, f"{DEFORM_DIR}/iteration_{number}/{DEFORM_NAME}", str(root))
     for file in (ply, pth):
         if not file.is_file():
             have = sorted(n for n in map(_iteration, file.parent.parent.iterdir()) if n is not None)

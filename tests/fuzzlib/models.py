@@ -46,7 +46,7 @@ from gscodec_shac.errors import GscodecError
 from tests.fuzzlib import zipfile_raw as rawzip
 from tests.fuzzlib.gsc import _dump, _edit_bytes, _edit_value
 
-FORMATS = ("dynamic", "spz1", "spz2", "spz3", "spz4", "splat", "sog", "sogdir", "cply", "pt")
+FORMATS = ("dynamic", "d3dgs", "spz1", "spz2", "spz3", "spz4", "splat", "sog", "sogdir", "cply", "pt")
 FAMILIES = ("truncate", "bytes", "hostile")
 #: Members up to this size are cut at every offset; larger ones at a stride giving this many cuts.
 EVERY_OFFSET_BYTES = 4096
@@ -104,6 +104,7 @@ def make_seeds(n: int = SEED_GAUSSIANS, seed: int = 0) -> dict[str, Seed]:
         write_gsplat_checkpoint(root / "a.pt", cloud)
         seeds["pt"] = Seed("pt", "ckpt.pt", {"ckpt.pt": (root / "a.pt").read_bytes()})
         seeds["dynamic"] = _dynamic_seed(cloud, root)
+        seeds["d3dgs"] = _deformable3dgs_seed(cloud, root)
     return seeds
 
 
@@ -178,6 +179,36 @@ def _dynamic_seed(cloud, root: Path) -> Seed:
     arch = DeformArch(depth=2, width=8, xyz_freqs=2, t_freqs=1, time_net=False)
     save_dynamic_model(root / "dyn", DynamicModel(cloud, DeformNetwork(arch)))
     return Seed("dynamic", "model", {f"model/{p.name}": p.read_bytes() for p in (root / "dyn").iterdir()})
+
+
+#: The iteration folder of the Deformable-3DGS seed.
+D3DGS_ITERATION = "iteration_7000"
+
+
+def _deformable3dgs_seed(cloud, root: Path) -> Seed:
+    """A Deformable-3DGS output folder (:mod:`gscodec_shac.io.deformable3dgs`): the canonical PLY and a
+    ``torch.save``d state dict under the reference's keys (D-NeRF variant, a small 4 x 8 network)."""
+    import torch
+
+    from gscodec_shac.io.ply import write_ply
+
+    gen = torch.Generator().manual_seed(0)
+    depth, width, x_ch, t_ch = 4, 8, 3 + 6 * 10, 30
+    shapes = {"timenet.0": (256, 1 + 2 * 6), "timenet.2": (t_ch, 256)}
+    for i in range(depth):
+        shapes[f"linear.{i}"] = (width, x_ch + t_ch if i == 0 else width + (x_ch + t_ch if i == depth // 2 + 1 else 0))
+    shapes |= {"gaussian_warp": (3, width), "gaussian_rotation": (4, width), "gaussian_scaling": (3, width)}
+    state = {}
+    for name, (out, fan_in) in shapes.items():
+        state[f"{name}.weight"] = (torch.rand(out, fan_in, generator=gen) * 2 - 1) / fan_in ** 0.5
+        state[f"{name}.bias"] = (torch.rand(out, generator=gen) * 2 - 1) / fan_in ** 0.5
+    ply = root / "d3dgs" / "point_cloud" / D3DGS_ITERATION / "point_cloud.ply"
+    pth = root / "d3dgs" / "deform" / D3DGS_ITERATION / "deform.pth"
+    ply.parent.mkdir(parents=True)
+    pth.parent.mkdir(parents=True)
+    write_ply(ply, cloud)
+    torch.save(state, pth)
+    return Seed("d3dgs", "out", {f"out/{p.relative_to(root / 'd3dgs')}": p.read_bytes() for p in (ply, pth)})
 
 
 # ------------------------------------------------------------------ cases
@@ -505,7 +536,8 @@ def _ply_header_edit(seed, files, rng):
 
 
 def _pickle_payload(seed, files, rng):
-    """A checkpoint whose data.pkl would create a file or run a command if unpickled."""
+    """A checkpoint (``ckpt.pt`` or a ``deform.pth``) whose data.pkl would create a file or run a command
+    if unpickled."""
     import pickle
 
     class Evil:
@@ -517,11 +549,12 @@ def _pickle_payload(seed, files, rng):
 
     marker = str(Path(tempfile.gettempdir()) / "gscodec-fuzz-pickle-ran")
     call = [Evil(open, (marker, "w")), Evil(os.system, (f"touch {marker}",)), Evil(eval, ("1+1",))][int(rng.integers(3))]
-    members = rawzip.members_of(files["ckpt.pt"])
+    name = "ckpt.pt" if "ckpt.pt" in files else _only(seed, ".pth")
+    members = rawzip.members_of(files[name])
     for i, member in enumerate(members):
         if member.name.endswith("data.pkl"):
             members[i] = rawzip.Member(member.name, pickle.dumps({"splats": {"means": call}}, protocol=2))
-    files["ckpt.pt"] = rawzip.build(members)
+    files[name] = rawzip.build(members)
     return files, {}
 
 
@@ -536,6 +569,7 @@ HOSTILE: dict[str, list[Edit]] = {
     "cply": [_ply_header_edit],
     "pt": [_pickle_payload, _zip_edit("ckpt.pt")],
     "dynamic": [_zip_edit(".npz"), _npy_header_edit, _json_edit("deformation.json"), _symlink_out, _ply_header_edit],
+    "d3dgs": [_zip_edit(".pth"), _pickle_payload, _ply_header_edit, _symlink_out],
 }
 
 
