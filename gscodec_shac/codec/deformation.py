@@ -37,6 +37,7 @@ import zlib
 import numpy as np
 
 from gscodec_shac.codec.container import Bitstream
+from gscodec_shac.codec.deformation_fit import fitted_codes, quantise_rows
 from gscodec_shac.deform_arch import DeformArch, weight_count, weight_shapes
 from gscodec_shac.errors import ModelFormatError
 
@@ -90,24 +91,6 @@ def raw_size(arch: DeformArch, dtype: str, bits: Bits = 16) -> int:
     return _half_bytes(arch) + (code_bits + 7) // 8
 
 
-def quantise_rows(value: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(lo, step, codes)`` of a matrix, per row: ``lo`` and ``step`` float16, ``codes`` uint8 in 0..2^bits-1.
-
-    ``lo`` and ``step`` are rounded to float16 first and the codes computed from the rounded
-    values, so the decoder's ``lo + code * step`` is what the encoder measured."""
-    top = (1 << bits) - 1
-    lo = value.min(axis=1).astype(np.float16)
-    span = value.max(axis=1) - lo.astype(np.float32)
-    step = (span / top).astype(np.float16)
-    short = step.astype(np.float32) * top < span  # rounded down: one float16 unit up covers the row
-    step[short] = np.nextafter(step[short], np.float16(np.inf))
-    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(step))):
-        raise ModelFormatError("deformation network: a weight beyond the float16 range cannot be coded")
-    safe = np.where(step > 0, step.astype(np.float32), 1.0)[:, None]
-    codes = np.clip(np.rint((value - lo.astype(np.float32)[:, None]) / safe), 0, top).astype(np.uint8)
-    return lo, step, codes
-
-
 def add_deformation(stream: Bitstream, arch: DeformArch, weights: dict[str, np.ndarray],
                     bits: Bits = DEFAULT_BITS, means: np.ndarray | None = None) -> int:
     """Append the network chunk + header entry to ``stream``; returns the chunk's size in bytes.
@@ -124,7 +107,6 @@ def add_deformation(stream: Bitstream, arch: DeformArch, weights: dict[str, np.n
             raise ValueError(f"deformation weight {name} has shape {np.shape(weights[name])}, expected {shape}")
     fitted: dict = {}
     if dtype == "uint8" and means is not None and len(means):
-        from gscodec_shac.codec.deformation_fit import fitted_codes
 
         codes_of, biases = fitted_codes(arch, weights, means, dict(zip(_matrices(arch), per_matrix)))
         fitted, weights = codes_of, {**weights, **biases}

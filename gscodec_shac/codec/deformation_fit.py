@@ -1,6 +1,6 @@
-"""Quantisation-aware rounding of the deformation network (encoder only; the stream format is unchanged).
+"""Rounding the deformation network's weights to per-row grids: plain, and aware of the outputs (encoder only).
 
-Plain rounding (:func:`gscodec_shac.codec.deformation.quantise_rows`) puts every weight on the
+Plain rounding (:func:`quantise_rows`) puts every weight on the
 nearest point of its row's grid ``lo + code * step`` independently. The encoder also has what
 the network is evaluated on, the canonical centres ``x`` at times ``t``, so it can pick the codes
 that keep each layer's *output* close instead (GPTQ, Frantar et al., 2023, applied per layer):
@@ -23,13 +23,31 @@ from __future__ import annotations
 
 import numpy as np
 
-from gscodec_shac.codec.deformation import quantise_rows
 from gscodec_shac.deform_arch import DeformArch, weight_shapes
+from gscodec_shac.errors import ModelFormatError
 
 CAL_POINTS = 4096
 CAL_TIMES = 16
 #: Ridge added to ``H``'s diagonal, relative to its mean diagonal (keeps ``H`` invertible).
 DAMPING = 0.01
+
+
+def quantise_rows(value: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(lo, step, codes)`` of a matrix, per row: ``lo`` and ``step`` float16, ``codes`` uint8 in 0..2^bits-1.
+
+    ``lo`` and ``step`` are rounded to float16 first and the codes computed from the rounded
+    values, so the decoder's ``lo + code * step`` is what the encoder measured."""
+    top = (1 << bits) - 1
+    lo = value.min(axis=1).astype(np.float16)
+    span = value.max(axis=1) - lo.astype(np.float32)
+    step = (span / top).astype(np.float16)
+    short = step.astype(np.float32) * top < span  # rounded down: one float16 unit up covers the row
+    step[short] = np.nextafter(step[short], np.float16(np.inf))
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(step))):
+        raise ModelFormatError("deformation network: a weight beyond the float16 range cannot be coded")
+    safe = np.where(step > 0, step.astype(np.float32), 1.0)[:, None]
+    codes = np.clip(np.rint((value - lo.astype(np.float32)[:, None]) / safe), 0, top).astype(np.uint8)
+    return lo, step, codes
 
 
 def fitted_codes(arch: DeformArch, weights: dict[str, np.ndarray], means: np.ndarray, bits: dict[str, int],
