@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-import gscodec_shac.render  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads OpenMP)
+import gscodec_shac.openmp  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads OpenMP)
 import torch  # noqa: E402
 
 from gscodec_shac.deform_arch import (

@@ -15,15 +15,11 @@ Modules: :mod:`.projection` (EWA projection, pixel convention), :mod:`.shading` 
 tests), :mod:`.output` (PNG writing). Kernels are numba-compiled with ``cache=True``; the first
 call in a fresh environment compiles them (:func:`warmup` does it up front).
 
-Importing this package sets ``OMP_WAIT_POLICY=PASSIVE`` unless the variable is already set:
-numba's OpenMP threads then sleep instead of spinning between the renderer's parallel regions,
-which matters on a shared, oversubscribed machine (spinning threads burned 2-4x the CPU time of
-the binning stage under load) and costs nothing measurable on an idle one.
+Importing this package sets ``OMP_WAIT_POLICY=PASSIVE`` unless the variable is already set
+(:mod:`gscodec_shac.openmp`): numba's OpenMP threads then sleep between the renderer's parallel regions.
 """
 
-import os
-
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import gscodec_shac.openmp  # noqa: F401
 
 from gscodec_shac.render.output import save_png, to_uint8  # noqa: E402
 from gscodec_shac.render.projection import BLOCK  # noqa: E402
