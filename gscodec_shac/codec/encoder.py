@@ -64,7 +64,7 @@ class _Job:
 
     name: str
     codec: GridCodec
-    planes: np.ndarray
+    planes: np.ndarray | None  # None once coded
     bits: int
     qp: int | None
     meta: dict[str, Any] = field(default_factory=dict)
@@ -146,10 +146,13 @@ class Encoder:
         with self._timed("sort"):
             kept, grid, cells, grid_cloud = self._cached("grid", lambda: self._placement(cloud, grid))
             self.order_ = kept[grid.order[cells]]
-        with self._timed("sh_stage"):  # the AC matrix is read in grid order, a block of rows at a time
-            ac = GatheredRows(cloud.ac_matrix(), self.order_) if sh_degree else None
+        # the AC matrix is read in grid order, a block of rows at a time; with release_input the
+        # model's other arrays are freed now (the grid-order cloud has its own), the AC matrix after the stage
+        ac = GatheredRows(cloud.ac_matrix(), self.order_) if sh_degree else None
+        cloud = None
+        with self._timed("sh_stage"):
             stage, features = self._sh_features(grid_cloud, ac)
-        ac = cloud = None  # with release_input, the model's arrays are freed here
+        ac = None
 
         stream = Bitstream()
         n = grid_cloud.num_gaussians
@@ -173,7 +176,7 @@ class Encoder:
             n_features = 0 if features is None else features.shape[1]
             if n_features:
                 attributes["sh"], n_features = self._code_sh(stage, features, cell_rows, grid.shape)
-            features = None
+            features = grid_cloud = values = None  # the coders hold the planes only
         with self._timed("code"):
             self._run_jobs(stream)
 
@@ -347,7 +350,7 @@ class Encoder:
         cache = self._chunk_cache
         keys = [_cache_key(job) if cache is not None else None for job in self._jobs]
         with ThreadPoolExecutor(self.workers) as pool:
-            futures = [None if key in (cache or {}) else pool.submit(job.codec.encode, job.planes, job.bits, job.qp)
+            futures = [None if key in (cache or {}) else pool.submit(_code_job, job)
                        for job, key in zip(self._jobs, keys)]
             for job, key, future in tqdm(list(zip(self._jobs, keys, futures)), desc="encode", unit="chunk",
                                          disable=not self.progress, leave=False):
@@ -363,6 +366,13 @@ class Encoder:
         if key not in self._codecs:
             self._codecs[key] = (get_codec(name, **options), len(self._codecs))
         return self._codecs[key]
+
+
+def _code_job(job: _Job) -> bytes:
+    """Code one chunk; its planes are freed as soon as it is coded (memory: the coders in flight)."""
+    data = job.codec.encode(job.planes, job.bits, job.qp)
+    job.planes = None
+    return data
 
 
 def _work_key(rp: RatePoint) -> str:
