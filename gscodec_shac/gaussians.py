@@ -163,6 +163,17 @@ class GaussianCloud:
         values["extra"] = {k: np.concatenate([c.extra[k] for c in clouds]) for k in keys[0]}
         return GaussianCloud(**values)
 
+    def take(self) -> "GaussianCloud":
+        """Move the arrays into a new cloud and leave this one empty (zero Gaussians, the same SH
+        degree and extra properties): a caller hands over its only copy, and the receiver can free
+        the arrays as soon as it is done with them (e.g. ``Encoder.encode(..., release_input=True)``)."""
+        values = {name: getattr(self, name) for name in CORE_ATTRIBUTES}
+        values["extra"] = dict(self.extra)
+        for name in CORE_ATTRIBUTES:
+            setattr(self, name, getattr(self, name)[:0].copy())
+        self.extra = {k: v[:0].copy() for k, v in self.extra.items()}
+        return GaussianCloud(**values)
+
     def copy(self) -> "GaussianCloud":
         values = {name: getattr(self, name).copy() for name in CORE_ATTRIBUTES}
         values["extra"] = {k: v.copy() for k, v in self.extra.items()}

@@ -25,21 +25,27 @@ from gscodec_shac.gaussians import GaussianCloud
 
 @dataclass(frozen=True)
 class Attribute:
-    """One coded attribute: its values from a cloud (``forward``) and back (``inverse``).
+    """One coded attribute: its values from a cloud and back (``inverse``).
 
-    Both take a ``ycbcr`` flag (only the colour uses it). ``groups`` fixes the channel
-    runs that form chunks; without it, channels sharing a QP form one chunk.
+    The values coded are ``column(cloud)`` (the cloud's array, no copy) put through the
+    row-wise transform ``rows(ycbcr)`` (``None``: coded as stored), which the encoder
+    applies a block of rows at a time; :meth:`forward` is the whole array at once.
+    ``rows`` and ``inverse`` take the ``ycbcr`` flag (only the colour uses it).
+    ``groups`` fixes the channel runs that form chunks; without it, channels sharing a
+    QP form one chunk.
     """
 
     name: str
-    forward: Callable[[GaussianCloud, bool], np.ndarray]
+    column: Callable[[GaussianCloud], np.ndarray]
+    rows: Callable[[bool], qz.RowTransform | None]
     inverse: Callable[[np.ndarray, bool], np.ndarray]
     transform: str
     groups: tuple[tuple[int, int], ...] | None = None
 
-
-def _dc_forward(cloud: GaussianCloud, ycbcr: bool) -> np.ndarray:
-    return qz.triplets_to_ycbcr(cloud.sh_dc) if ycbcr else cloud.sh_dc
+    def forward(self, cloud: GaussianCloud, ycbcr: bool) -> np.ndarray:
+        """The (N, C) values coded, whole."""
+        values, rows = self.column(cloud), self.rows(ycbcr)
+        return values if rows is None else rows(values)
 
 
 def _dc_inverse(values: np.ndarray, ycbcr: bool) -> np.ndarray:
@@ -49,13 +55,14 @@ def _dc_inverse(values: np.ndarray, ycbcr: bool) -> np.ndarray:
 ATTRIBUTES: dict[str, Attribute] = {
     a.name: a
     for a in (
-        Attribute("positions", lambda c, _: qz.log_transform(c.means), lambda v, _: qz.inverse_log_transform(v),
-                  "sign_log1p"),
-        Attribute("rotation", lambda c, _: qz.canonical_quaternions(c.quats), lambda v, _: v, "unit_w_nonnegative",
-                  groups=((0, 1), (1, 4))),
-        Attribute("scale", lambda c, _: c.scales, lambda v, _: v, "log_scale"),
-        Attribute("opacity", lambda c, _: c.opacities[:, None], lambda v, _: v, "logit"),
-        Attribute("sh_dc", _dc_forward, _dc_inverse, "color"),
+        Attribute("positions", lambda c: c.means, lambda _: qz.log_transform,
+                  lambda v, _: qz.inverse_log_transform(v), "sign_log1p"),
+        Attribute("rotation", lambda c: c.quats, lambda _: qz.canonical_quaternions, lambda v, _: v,
+                  "unit_w_nonnegative", groups=((0, 1), (1, 4))),
+        Attribute("scale", lambda c: c.scales, lambda _: None, lambda v, _: v, "log_scale"),
+        Attribute("opacity", lambda c: c.opacities[:, None], lambda _: None, lambda v, _: v, "logit"),
+        Attribute("sh_dc", lambda c: c.sh_dc, lambda ycbcr: qz.triplets_to_ycbcr if ycbcr else None, _dc_inverse,
+                  "color"),
     )
 }
 #: The transform name recorded for the SH stage's features.

@@ -108,6 +108,7 @@ class Decoder:
             if not view.sh.lossless:
                 features = features.astype(np.float32, copy=False)
             dc_and_ac = np.asarray(stage.inverse_transform(features))
+            features = None  # freed before the cloud's float32 copies below (peak memory)
             if view.sh.uses_dc:
                 sh_dc, dc_and_ac = dc_and_ac[:, :3], dc_and_ac[:, 3:]
             sh_rest = sh_index.sh_rest_from_ac(np.ascontiguousarray(dc_and_ac, dtype=np.float32))

@@ -37,11 +37,21 @@ from gscodec_shac.codec.attributes import ATTRIBUTES, SH_FEATURES_TRANSFORM
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.grid.base import GridCodec, get_codec
 from gscodec_shac.codec.importance import gaussian_importance, importance_views, keep_count, most_important
-from gscodec_shac.codec.layout import GridOrder, check_grid, kept_rows, plan_grid, plan_positions_grid, planes, qp_runs
+from gscodec_shac.codec.layout import (
+    GridOrder,
+    check_grid,
+    kept_rows,
+    placement_view,
+    plan_grid,
+    plan_positions_grid,
+    planes,
+    qp_runs,
+)
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode
 from gscodec_shac.codec.rate_points import AttributeSpec, RatePoint, load_rate_point
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.gaussians import GaussianCloud
+from gscodec_shac.row_blocks import GatheredRows
 from gscodec_shac.shac.base import ShStage, make_stage
 
 
@@ -56,7 +66,7 @@ class _Job:
 
     name: str
     codec: GridCodec
-    planes: np.ndarray
+    planes: np.ndarray | None  # None once coded
     bits: int
     qp: int | None
     meta: dict[str, Any] = field(default_factory=dict)
@@ -118,8 +128,7 @@ class Encoder:
     # ---------------------------------------------------------------- main
     def grid_order(self, cloud: GaussianCloud) -> GridOrder:
         """The grid placement :meth:`encode` computes for ``cloud`` (after pruning), to reuse it."""
-        kept = self.kept_rows(cloud)
-        return self._plan(cloud if kept.size == cloud.num_gaussians else cloud.select(kept))
+        return self._plan(placement_view(cloud, self.kept_rows(cloud)))
 
     def _plan(self, work: GaussianCloud) -> GridOrder:
         rp = self.rate_point
@@ -127,13 +136,18 @@ class Encoder:
             return plan_positions_grid(work, rp.attributes["positions"].bits, rp.sort.multiple)
         return plan_grid(work, rp.sort, self.progress)
 
-    def encode(self, cloud: GaussianCloud, grid: GridOrder | None = None) -> Bitstream:
+    def encode(self, cloud: GaussianCloud, grid: GridOrder | None = None, *, release_input: bool = False) -> Bitstream:
         """Compress ``cloud`` into a :class:`Bitstream` (deterministic for equal input).
 
         ``grid``: a placement from :meth:`grid_order` for the same cloud and settings,
-        to sort once for many encodes (the bytes are the same).
+        to sort once for many encodes (the bytes are the same). ``release_input``: the
+        caller gives ``cloud`` up; it is emptied (:meth:`GaussianCloud.take`) and its arrays
+        are freed once the SH features exist, so the coding holds no copy of the model.
         """
         rp = self.rate_point
+        n_input, sh_degree = cloud.num_gaussians, cloud.sh_degree
+        if release_input:
+            cloud = cloud.take()
         self._codecs, self._jobs, self.timings_ = {}, [], {}
         # With a shared cache (the rate controller's trials), the placement, the SH features and
         # the position set of equal pruning and sorting settings are computed once.
@@ -141,8 +155,13 @@ class Encoder:
         with self._timed("sort"):
             kept, grid, cells, grid_cloud = self._cached("grid", lambda: self._placement(cloud, grid))
             self.order_ = kept[grid.order[cells]]
+        # the AC matrix is read in grid order, a block of rows at a time; with release_input the
+        # model's other arrays are freed now (the grid-order cloud has its own), the AC matrix after the stage
+        ac = GatheredRows(cloud.ac_matrix(), self.order_) if sh_degree else None
+        cloud = None
         with self._timed("sh_stage"):
-            stage, features = self._sh_features(grid_cloud)
+            stage, features = self._sh_features(grid_cloud, ac)
+        ac = None
 
         stream = Bitstream()
         n = grid_cloud.num_gaussians
@@ -157,14 +176,16 @@ class Encoder:
             for name, attr in ATTRIBUTES.items():
                 if name == "sh_dc" and stage is not None and stage.uses_dc:
                     continue  # the DC travels inside the stage's features
-                values = attr.forward(grid_cloud, ycbcr)
+                values, rows = attr.column(grid_cloud), attr.rows(ycbcr)
                 if name == "positions" and rp.positions_as_set:
-                    attributes[name] = self._code_position_set(values, rp.attributes[name], stream)
+                    attributes[name] = self._code_position_set(values, rows, rp.attributes[name], stream)
                     continue
                 attributes[name] = self._code_values(name, attr.transform, values, rp.attributes[name], cell_rows,
-                                                     grid.shape, attr.groups)
-            if features is not None and features.shape[1]:
-                attributes["sh"], features = self._code_sh(stage, features, cell_rows, grid.shape)
+                                                     grid.shape, attr.groups, rows=rows)
+            n_features = 0 if features is None else features.shape[1]
+            if n_features:
+                attributes["sh"], n_features = self._code_sh(stage, features, cell_rows, grid.shape)
+            features = grid_cloud = values = None  # the coders hold the planes only
         with self._timed("code"):
             self._run_jobs(stream)
 
@@ -174,19 +195,19 @@ class Encoder:
             stream.add_chunk("sh_state", zlib.compress(raw, 9), attribute="sh_state", encoding="zlib", raw_size=len(raw))
             sh_header = {
                 "stage": stage.name,
-                "features": int(features.shape[1]),
+                "features": int(n_features),
                 "lossless": stage.feature_kind == "labels",
                 "uses_dc": bool(stage.uses_dc),
-                "ycbcr": bool(ycbcr and stage.ycbcr_applies(features.shape[1])),
+                "ycbcr": bool(ycbcr and stage.ycbcr_applies(n_features)),
             }
         stream.header = {
             "producer": f"gscodec-shac {gscodec_shac.__version__}",
             "num_gaussians": n,
-            "input_gaussians": cloud.num_gaussians,
-            "sh_degree": cloud.sh_degree,
+            "input_gaussians": n_input,
+            "sh_degree": sh_degree,
             "grid": {"height": grid.shape[0], "width": grid.shape[1], "padding": padding, "policy": grid.policy,
                      "dropped": grid.dropped, "sort": None if rp.positions_as_set else rp.sort.to_json()},
-            "prune": {**rp.prune_json(), "pruned": int(cloud.num_gaussians - kept.size)},
+            "prune": {**rp.prune_json(), "pruned": int(n_input - kept.size)},
             "color": rp.color,
             "sh": sh_header,
             "attributes": attributes,
@@ -196,10 +217,11 @@ class Encoder:
         return stream
 
     def _placement(self, cloud: GaussianCloud, grid: GridOrder | None) -> tuple:
-        """Prune and place on the grid: (kept rows, grid order, occupied cells, the cloud in grid order)."""
+        """Prune and place on the grid: (kept rows, grid order, occupied cells, the cloud in grid order
+        without its SH AC coefficients: :func:`placement_view`)."""
         with self._timed("prune"):
             kept = self.kept_rows(cloud)
-            work = cloud if kept.size == cloud.num_gaussians else cloud.select(kept)
+            work = placement_view(cloud, kept)
         grid = self._plan(work) if grid is None else check_grid(grid, work)
         cells = grid.cells()
         return kept, grid, cells, work.select(grid.order[cells])
@@ -237,13 +259,18 @@ class Encoder:
         self.timings_[step] = time.perf_counter() - tic
 
     # -------------------------------------------------------------- steps
-    def _sh_features(self, cloud: GaussianCloud) -> tuple[ShStage | None, np.ndarray | None]:
-        if cloud.sh_degree == 0:
+    def _sh_features(
+        self, cloud: GaussianCloud, ac: GatheredRows | None
+    ) -> tuple[ShStage | None, np.ndarray | None]:
+        """The SH stage and its features of the AC matrix ``ac`` in grid order (``cloud``: the grid-order
+        cloud, for the DC and positions)."""
+        if ac is None:
             return None, None
         # a caller's stage is copied: water-filling may drop features of the copy
         stage = copy.deepcopy(self._stage_instance) or make_stage(self.rate_point.sh_stage, **self.rate_point.sh_params)
         stage.progress = self.progress
-        ac = cloud.ac_matrix()
+        if not stage.reads_row_blocks or stage.uses_dc:
+            ac = np.asarray(ac)
         if stage.uses_dc:
             ac = np.concatenate([cloud.sh_dc, ac], axis=1)
         fit = self.fit_stage or self._stage_instance is None
@@ -254,11 +281,12 @@ class Encoder:
         # a fitted caller's stage transforms the same cloud to the same features: once per placement
         return stage, self._cached(f"features-{id(self._stage_instance)}", lambda: np.asarray(stage.transform(ac)))
 
-    def _code_position_set(self, values: np.ndarray, spec: AttributeSpec, stream: Bitstream) -> dict:
-        """Positions as a Morton-sorted set (:mod:`.positions`); the grid order is their Morton order."""
-        quantizer = qz.Quantizer.fit(values, spec.bits)
+    def _code_position_set(self, values: np.ndarray, rows: qz.RowTransform | None, spec: AttributeSpec,
+                           stream: Bitstream) -> dict:
+        """Positions (``rows(values)``) as a Morton-sorted set (:mod:`.positions`); the grid order is their Morton order."""
+        quantizer = qz.Quantizer.fit(values, spec.bits, rows)
         data = self._cached(f"positions-{spec.bits}",
-                            lambda: encode_sorted_codes(morton_encode(quantizer.quantize(values))))
+                            lambda: encode_sorted_codes(morton_encode(quantizer.quantize(values, rows))))
         stream.require("positions_set")
         stream.add_chunk("positions", data, attribute="positions", encoding="morton_set", bits=spec.bits)
         return {"chunks": ["positions"], "channels": 3, "coding": "set", "transform": ATTRIBUTES["positions"].transform,
@@ -266,8 +294,9 @@ class Encoder:
 
     def _code_sh(
         self, stage: ShStage, features: np.ndarray, cell_rows: np.ndarray, shape: tuple[int, int]
-    ) -> tuple[dict, np.ndarray]:
-        """Queue the SH features' chunks; returns the header entry and the features coded (water-filling may drop some)."""
+    ) -> tuple[dict, int]:
+        """Queue the SH features' chunks; returns the header entry and the number of features coded
+        (water-filling may drop some)."""
         spec = self.rate_point.attributes[stage.rate_attribute]
         if stage.feature_kind == "labels":
             bits = int(stage.feature_bits)  # type: ignore[attr-defined]
@@ -275,28 +304,32 @@ class Encoder:
             if labels.size and (labels.min() < 0 or labels.max() >= 1 << bits):
                 raise ValidationError(f"SH stage {stage.name!r} gave labels outside 0..2^{bits}-1")
             entry = self._code_integers("sh", SH_FEATURES_TRANSFORM, labels.astype(np.uint16), bits, spec, cell_rows, shape)
-            return entry, features
-        values = features
+            return entry, features.shape[1]
+        rows = None  # the YCbCr triplets are computed a block of rows at a time (no float64 copy of all features)
         if self.rate_point.color == "ycbcr" and stage.ycbcr_applies(features.shape[1]):
-            values = qz.triplets_to_ycbcr(features)
+            rows = qz.triplets_to_ycbcr
         if spec.allocation == "waterfill":
             if stage.feature_kind != "components":
                 raise ValidationError(f"waterfill allocation needs a components stage such as pca, not {stage.name!r}")
-            qps = waterfill_qps(np.ptp(values, axis=0), stage.feature_weights(), int(spec.qp))
+            lo, hi = qz.column_extrema(features, rows)
+            qps = waterfill_qps(hi - lo, stage.feature_weights(), int(spec.qp))
             if len(qps) < features.shape[1]:
                 stage.keep_features(len(qps))
-                features = values = features[:, : len(qps)]
+                features = features[:, : len(qps)]
         else:
             qps = [spec.qp_for_degree(d) for d in stage.feature_degrees(features.shape[1])]
-        return self._code_values("sh", SH_FEATURES_TRANSFORM, values, spec, cell_rows, shape, None, qps), features
+        entry = self._code_values("sh", SH_FEATURES_TRANSFORM, features, spec, cell_rows, shape, None, qps, rows)
+        return entry, features.shape[1]
 
     def _code_values(
         self, name: str, transform: str, values: np.ndarray, spec: AttributeSpec,
         cell_rows: np.ndarray, shape: tuple[int, int], groups: tuple | None, qps: list | None = None,
+        rows: qz.RowTransform | None = None,
     ) -> dict:
-        """Quantise (N, C) floats and queue their chunks; returns the attribute's header entry."""
-        quantizer = qz.Quantizer.fit(values, spec.bits)
-        q = quantizer.quantize(values)
+        """Quantise (N, C) floats (``rows(values)``, a block of rows at a time) and queue their chunks;
+        returns the attribute's header entry."""
+        quantizer = qz.Quantizer.fit(values, spec.bits, rows)
+        q = quantizer.quantize(values, rows)
         if spec.lossless:
             entry = self._code_integers(name, transform, q, spec.bits, spec, cell_rows, shape)
         else:
@@ -309,7 +342,7 @@ class Encoder:
                 self._queue(chunk, name, planes(q[:, start:stop], cell_rows, shape), spec.bits, qps[start], spec,
                             (start, stop), "all")
                 entry["chunks"].append(chunk)
-        entry.update(transform=transform, channels=int(values.shape[1]), quantizer=quantizer.to_json())
+        entry.update(transform=transform, channels=int(q.shape[1]), quantizer=quantizer.to_json())
         return entry
 
     def _code_integers(
@@ -343,7 +376,7 @@ class Encoder:
         cache = self._chunk_cache
         keys = [_cache_key(job) if cache is not None else None for job in self._jobs]
         with ThreadPoolExecutor(self.workers) as pool:
-            futures = [None if key in (cache or {}) else pool.submit(job.codec.encode, job.planes, job.bits, job.qp)
+            futures = [None if key in (cache or {}) else pool.submit(_code_job, job)
                        for job, key in zip(self._jobs, keys)]
             for job, key, future in tqdm(list(zip(self._jobs, keys, futures)), desc="encode", unit="chunk",
                                          disable=not self.progress, leave=False):
@@ -359,6 +392,13 @@ class Encoder:
         if key not in self._codecs:
             self._codecs[key] = (get_codec(name, **options), len(self._codecs))
         return self._codecs[key]
+
+
+def _code_job(job: _Job) -> bytes:
+    """Code one chunk; its planes are freed as soon as it is coded (memory: the coders in flight)."""
+    data = job.codec.encode(job.planes, job.bits, job.qp)
+    job.planes = None
+    return data
 
 
 def _work_key(rp: RatePoint) -> str:

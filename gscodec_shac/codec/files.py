@@ -76,12 +76,14 @@ def encode_file(
     encoder = Encoder(point, sh_stage=sh, sort=sort, seed=seed,
                       sh_params={k: v for k, v in stage_params.items() if v is not None},
                       codec_options={"preset": preset} if preset else None, progress=progress, views=views)
-    stream = encoder.encode(cloud)
+    n_input, sh_degree = cloud.num_gaussians, cloud.sh_degree
+    means = cloud.means if dynamic is not None else None  # the network's rounding is fitted on them
+    stream = encoder.encode(cloud, release_input=True)  # the model is freed once read (memory, issue 25)
     if dynamic is not None:
         from gscodec_shac.codec.deformation import DEFAULT_BITS, encoder_bits
 
         bits = encoder_bits(dynamic.arch, DEFAULT_BITS if network_bits is None else network_bits)
-        add_deformation(stream, dynamic.arch, dynamic.net.weights(), bits, means=cloud.means)
+        add_deformation(stream, dynamic.arch, dynamic.net.weights(), bits, means=means)
     with inputs_protected(in_ply, *([cameras] if cameras is not None else [])):
         size = stream.write(out_gsc)
     return {
@@ -89,11 +91,11 @@ def encode_file(
         "output": str(out_gsc),
         "rate_point": encoder.rate_point.name,
         "sh_stage": encoder.rate_point.sh_stage,
-        "input_gaussians": cloud.num_gaussians,
-        "sh_degree": cloud.sh_degree,
+        "input_gaussians": n_input,
+        "sh_degree": sh_degree,
         "num_gaussians": stream.header["num_gaussians"],
         "bytes": size,
-        "bits_per_gaussian": 8.0 * size / cloud.num_gaussians,
+        "bits_per_gaussian": 8.0 * size / n_input,
         "seconds": time.perf_counter() - tic,
         "timings": encoder.timings_,
         "sizes": stream.attribute_sizes(),

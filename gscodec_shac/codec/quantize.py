@@ -38,6 +38,8 @@ _KR, _KB = 0.2126, 0.0722
 _KG = 1.0 - _KR - _KB
 #: Rows per block in :meth:`Quantizer.quantize` (bounds the float64 temporary).
 _BLOCK_ROWS = 1 << 16
+#: A row-wise transform of (n, C) values (each output row depends on its input row only).
+RowTransform = Callable[[np.ndarray], np.ndarray]
 
 
 # ----------------------------------------------------------------- transforms
@@ -144,18 +146,29 @@ class Quantizer:
         object.__setattr__(self, "hi", hi)
 
     @classmethod
-    def fit(cls, values: np.ndarray, bits: int) -> "Quantizer":
-        """Ranges from the data: per-column min and max, as float32."""
+    def fit(cls, values: np.ndarray, bits: int, rows: RowTransform | None = None,
+            block_rows: int = _BLOCK_ROWS) -> "Quantizer":
+        """Ranges from the data: per-column min and max, as float32.
+
+        ``rows``: a row-wise transform (e.g. :func:`log_transform`) the ranges are taken of,
+        applied ``block_rows`` rows at a time (the same ranges as of ``rows(values)``, without
+        that whole array)."""
         values = _as_2d(values)
         if values.shape[0] == 0:
             zeros = np.zeros(values.shape[1], dtype=np.float32)
             return cls(bits, zeros, zeros)
-        lo = values.min(axis=0).astype(np.float32)
-        hi = values.max(axis=0).astype(np.float32)
+        lo, hi = column_extrema(values, rows, block_rows)
+        return cls.from_extrema(bits, lo, hi)
+
+    @classmethod
+    def from_extrema(cls, bits: int, lo: np.ndarray, hi: np.ndarray) -> "Quantizer":
+        """The quantiser of data whose per-column min and max are ``lo`` and ``hi``: float32 ranges
+        that still cover them."""
+        lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
         # float32 rounding of the extremes must still cover the data.
-        lo = np.where(lo.astype(np.float64) > values.min(axis=0), np.nextafter(lo, np.float32(-np.inf)), lo)
-        hi = np.where(hi.astype(np.float64) < values.max(axis=0), np.nextafter(hi, np.float32(np.inf)), hi)
-        return cls(bits, lo, hi)
+        lo32 = np.where(lo32.astype(np.float64) > lo, np.nextafter(lo32, np.float32(-np.inf)), lo32)
+        hi32 = np.where(hi32.astype(np.float64) < hi, np.nextafter(hi32, np.float32(np.inf)), hi32)
+        return cls(bits, lo32, hi32)
 
     @property
     def levels(self) -> int:
@@ -166,22 +179,26 @@ class Quantizer:
         """Quantisation step per channel (0 for a constant channel)."""
         return (self.hi.astype(np.float64) - self.lo.astype(np.float64)) / self.levels
 
-    def quantize(self, values: np.ndarray) -> np.ndarray:
-        """(N, C) floats -> (N, C) uint16 in ``[0, 2^bits)`` (float64 arithmetic, in row blocks)."""
+    def quantize(self, values: np.ndarray, rows: RowTransform | None = None, block_rows: int = _BLOCK_ROWS) -> np.ndarray:
+        """(N, C) floats -> (N, C) uint16 in ``[0, 2^bits)`` (float64 arithmetic, ``block_rows`` rows
+        at a time); with ``rows``, of ``rows(values)``, transformed block by block."""
         values = _as_2d(values)
-        if values.shape[1] != self.lo.shape[0]:
+        if rows is None and values.shape[1] != self.lo.shape[0]:
             raise ValidationError(f"quantiser has {self.lo.shape[0]} channels, values have {values.shape[1]}")
+        out = np.empty((values.shape[0], self.lo.shape[0]), dtype=np.uint16)
         span = self.hi.astype(np.float64) - self.lo.astype(np.float64)
         scale = np.where(span > 0, self.levels / np.where(span > 0, span, 1.0), 0.0)
         lo = self.lo.astype(np.float64)
-        out = np.empty(values.shape, dtype=np.uint16)
-        for start in range(0, values.shape[0], _BLOCK_ROWS):
-            block = values[start : start + _BLOCK_ROWS].astype(np.float64)
+        for start in range(0, values.shape[0], block_rows):
+            raw = values[start : start + block_rows]
+            block = raw.astype(np.float64) if rows is None else np.array(rows(raw), dtype=np.float64)
+            if block.shape[1] != self.lo.shape[0]:
+                raise ValidationError(f"quantiser has {self.lo.shape[0]} channels, values have {block.shape[1]}")
             block -= lo
             block *= scale
             np.rint(block, out=block)
             np.clip(block, 0, self.levels, out=block)
-            out[start : start + _BLOCK_ROWS] = block
+            out[start : start + block_rows] = block
         return out
 
     def tables(self) -> np.ndarray:
@@ -244,6 +261,22 @@ def float32_json(value: float) -> float:
     exact = np.float32(value)
     short = float(str(exact))
     return short if np.float32(short) == exact else float(exact)
+
+
+def column_extrema(values: np.ndarray, rows: RowTransform | None = None,
+                   block_rows: int = _BLOCK_ROWS) -> tuple[np.ndarray, np.ndarray]:
+    """Per-column min and max of (N, C) ``values`` (N > 0), or of ``rows(values)`` computed
+    ``block_rows`` rows at a time (exactly the extrema of the whole transformed array)."""
+    values = _as_2d(values)
+    if rows is None:
+        return values.min(axis=0), values.max(axis=0)
+    lo = hi = None
+    for start in range(0, values.shape[0], block_rows):
+        block = _as_2d(rows(values[start : start + block_rows]))
+        low, high = block.min(axis=0), block.max(axis=0)
+        lo = low if lo is None else np.minimum(lo, low)
+        hi = high if hi is None else np.maximum(hi, high)
+    return lo, hi
 
 
 def _as_2d(values: np.ndarray) -> np.ndarray:

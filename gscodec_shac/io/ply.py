@@ -30,7 +30,14 @@ from gscodec_shac import sh_index
 from gscodec_shac.atomic import atomic_output
 from gscodec_shac.errors import PlyFormatError, ValidationError
 from gscodec_shac.gaussians import GaussianCloud
-from gscodec_shac.io.ply_header import FLOAT_TYPES, check_layout, playcanvas_compressed, read_layout
+from gscodec_shac.io.ply_header import (
+    FLOAT_TYPES,
+    PlyElement,
+    PlyLayout,
+    check_layout,
+    playcanvas_compressed,
+    read_layout,
+)
 
 _REQUIRED = (
     ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
@@ -39,11 +46,23 @@ _REQUIRED = (
 )
 _F_REST = re.compile(r"^f_rest_(\d+)$")
 _NORMALS = ("nx", "ny", "nz")
+#: The cloud's float arrays a PLY fills (checked for NaN and inf after reading).
+_FLOAT_ARRAYS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
 #: Finite stand-in for an infinite opacity logit (8-bit alpha 0 or 255): sigmoid(20) = 1 - 2e-9.
 OPACITY_LOGIT_LIMIT = 20.0
 
 
-def read_ply(path: str | os.PathLike, *, clamp_opacity: bool = False) -> GaussianCloud:
+#: Rows per block when reading a binary PLY (bounds the row buffer: 16 MB at SH degree 3).
+READ_BLOCK_ROWS = 1 << 16
+#: numpy type of each PLY scalar type (both spellings of each).
+_NUMPY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
+    "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
+    "double": "f8", "float64": "f8",
+}
+
+
+def read_ply(path: str | os.PathLike, *, clamp_opacity: bool = False, block_rows: int = READ_BLOCK_ROWS) -> GaussianCloud:
     """Read an Inria 3DGS PLY into a :class:`GaussianCloud`.
 
     Raises :class:`PlyFormatError` with one sentence for: a missing or unreadable
@@ -53,6 +72,10 @@ def read_ply(path: str | os.PathLike, *, clamp_opacity: bool = False) -> Gaussia
     no SH degree 0-4, list properties, or non-finite values (how many, in which property,
     at which vertices). ``clamp_opacity`` sets infinite opacity logits (8-bit alpha 0 or
     255 converted to logits) to +-:data:`OPACITY_LOGIT_LIMIT`, as the RD harness does.
+
+    A binary file is read ``block_rows`` vertices at a time straight into the cloud's
+    arrays (memory: the cloud plus one block; the values do not depend on ``block_rows``);
+    an ASCII file goes through ``plyfile``.
     """
     path = Path(path)
     if path.is_dir():
@@ -69,33 +92,31 @@ def read_ply(path: str | os.PathLike, *, clamp_opacity: bool = False) -> Gaussia
             f"not an Inria 3DGS PLY; decompress it first, e.g. `npx @playcanvas/splat-transform {path} decompressed.ply`"
         )
     check_layout(layout, path)
-    vertex_layout = layout.element("vertex")
-    if vertex_layout is not None:
-        for prop in vertex_layout.properties:
+    vertex = layout.element("vertex")
+    if vertex is not None:
+        for prop in vertex.properties:
             if (prop.name in _REQUIRED or _F_REST.match(prop.name)) and not prop.count_type and prop.type not in FLOAT_TYPES:
                 raise PlyFormatError(f"{path}: property {prop.name!r} is {prop.type}; an Inria 3DGS PLY stores it "
                                      "as float (or double)")
-    try:
-        data = plyfile.PlyData.read(str(path))
-    except Exception as exc:  # plyfile raises several types for malformed input
-        raise PlyFormatError(f"{path}: malformed or truncated PLY ({_one_line(exc)})") from None
-
-    names = [element.name for element in data.elements]
-    if "vertex" not in names:
+    offset = _binary_offset(layout)
+    if offset is None:  # ASCII (or rows of varying size before the vertices): plyfile parses the file
+        try:
+            data = plyfile.PlyData.read(str(path))
+        except Exception as exc:  # plyfile raises several types for malformed input
+            raise PlyFormatError(f"{path}: malformed or truncated PLY ({_one_line(exc)})") from None
+    names = [element.name for element in layout.elements]
+    if vertex is None:
         raise PlyFormatError(f"{path}: no 'vertex' element (elements: {', '.join(names) or 'none'})")
     others = [n for n in names if n != "vertex"]
     if others:
         warnings.warn(f"{path}: PLY elements {others} are not Gaussians and are ignored", stacklevel=2)
-    vertex = data["vertex"]
     for prop in vertex.properties:
-        if isinstance(prop, plyfile.PlyListProperty):
+        if prop.count_type:
             raise PlyFormatError(f"{path}: list property {prop.name!r} is not supported in a 3DGS PLY")
-    table = vertex.data
-    count = len(table)
+    count = vertex.count
     if count == 0:
         raise PlyFormatError(f"{path}: the PLY has zero vertices")
-
-    fields = list(table.dtype.names)
+    fields = [prop.name for prop in vertex.properties]
     missing = [name for name in _REQUIRED if name not in fields]
     if missing:
         raise PlyFormatError(f"{path}: not a 3DGS PLY, missing properties: {', '.join(missing)}")
@@ -115,35 +136,88 @@ def read_ply(path: str | os.PathLike, *, clamp_opacity: bool = False) -> Gaussia
             f"(degrees 0-4 need {_valid_rest_counts()})"
         ) from None
 
-    def stack(columns: list[str]) -> np.ndarray:
-        if not columns:
-            return np.zeros((count, 0), dtype=np.float32)
-        return np.stack([np.asarray(table[c], dtype=np.float32) for c in columns], axis=1)
-
+    arrays, columns = _destinations(vertex, len(rest_ids) // 3)
     with np.errstate(over="ignore", invalid="ignore"):  # doubles beyond float32 become inf: reported below
-        f_rest = stack([f"f_rest_{i}" for i in rest_ids])
-        opacity = np.asarray(table["opacity"], dtype=np.float32)
-        if clamp_opacity and np.isinf(opacity).any():
+        if offset is None:
+            table = data["vertex"].data
+            for name, target in columns.items():
+                target[...] = table[name]
+        else:
+            _read_rows(path, layout, offset, columns, block_rows)
+    opacity = arrays["opacities"]
+    if clamp_opacity:
+        infinite = np.isinf(opacity)
+        if infinite.any():
             from gscodec_shac.io.model_common import note
 
-            note(f"{path}: {int(np.isinf(opacity).sum()):,} infinite opacity logit(s) (8-bit alpha 0 or 255) "
+            note(f"{path}: {int(infinite.sum()):,} infinite opacity logit(s) (8-bit alpha 0 or 255) "
                  f"clamped to +-{OPACITY_LOGIT_LIMIT:g}")
-            opacity = np.where(np.isinf(opacity), np.sign(opacity) * np.float32(OPACITY_LOGIT_LIMIT), opacity)
-        _check_finite_columns(path, table, [c for c in _REQUIRED if c != "opacity"], f_rest, opacity)
-    known = set(_REQUIRED) | {f"f_rest_{i}" for i in rest_ids}
-    extra = {name: _native(table[name]) for name in fields if name not in known}
+            opacity[infinite] = np.sign(opacity[infinite]) * np.float32(OPACITY_LOGIT_LIMIT)
+    # min and max propagate NaN and reach +-inf: allocation-free passes decide the common case
+    if not all(_all_finite(arrays[name]) for name in _FLOAT_ARRAYS):
+        checked = [c for c in _REQUIRED if c != "opacity"] + [f"f_rest_{i}" for i in rest_ids] + ["opacity"]
+        _check_finite_columns(path, [(name, columns[name]) for name in checked])
     try:
-        return GaussianCloud(
-            means=stack(["x", "y", "z"]),
-            scales=stack([f"scale_{i}" for i in range(3)]),
-            quats=stack([f"rot_{i}" for i in range(4)]),
-            opacities=opacity,
-            sh_dc=stack(["f_dc_0", "f_dc_1", "f_dc_2"]),
-            sh_rest=sh_index.sh_rest_from_inria_rest(f_rest),
-            extra=extra,
-        )
+        return GaussianCloud(**arrays)
     except ValidationError as exc:
         raise PlyFormatError(f"{path}: {exc}") from None
+
+
+def _destinations(vertex: PlyElement, n_rest: int) -> tuple[dict, dict[str, np.ndarray]]:
+    """The cloud's arrays for ``vertex`` (uninitialised) and, per PLY property, the column view it fills.
+
+    ``f_rest`` is channel-major in the file: ``f_rest_{c * n_rest + k}`` is coefficient ``k`` of
+    channel ``c``, i.e. ``sh_rest[:, k, c]``."""
+    n = vertex.count
+    arrays: dict = {
+        "means": np.empty((n, 3), np.float32), "scales": np.empty((n, 3), np.float32),
+        "quats": np.empty((n, 4), np.float32), "opacities": np.empty(n, np.float32),
+        "sh_dc": np.empty((n, 3), np.float32), "sh_rest": np.empty((n, n_rest, 3), np.float32), "extra": {},
+    }
+    columns = {name: arrays["means"][:, i] for i, name in enumerate("xyz")}
+    columns |= {f"scale_{i}": arrays["scales"][:, i] for i in range(3)}
+    columns |= {f"rot_{i}": arrays["quats"][:, i] for i in range(4)}
+    columns |= {f"f_dc_{i}": arrays["sh_dc"][:, i] for i in range(3)}
+    columns |= {f"f_rest_{c * n_rest + k}": arrays["sh_rest"][:, k, c] for c in range(3) for k in range(n_rest)}
+    columns["opacity"] = arrays["opacities"]
+    for prop in vertex.properties:
+        if prop.name not in columns:
+            columns[prop.name] = arrays["extra"][prop.name] = np.empty(n, np.dtype(_NUMPY_TYPES[prop.type]))
+    return arrays, columns
+
+
+def _binary_offset(layout: PlyLayout) -> int | None:
+    """Where the vertex rows of a binary file start; None for ASCII, or when they cannot be
+    read as fixed-size rows (a list property, repeated property names, no vertex element)."""
+    if layout.format == "ascii":
+        return None
+    offset = layout.header_bytes
+    for element in layout.elements:
+        if element.row_bytes is None:
+            return None
+        if element.name == "vertex":
+            names = [prop.name for prop in element.properties]
+            return offset if len(set(names)) == len(names) else None
+        offset += element.count * element.row_bytes
+    return None
+
+
+def _read_rows(path: Path, layout: PlyLayout, offset: int, columns: dict[str, np.ndarray], block_rows: int) -> None:
+    """Fill ``columns`` from the binary vertex rows at ``offset``, ``block_rows`` rows at a time."""
+    vertex = layout.element("vertex")
+    order = "<" if layout.format == "binary_little_endian" else ">"
+    dtype = np.dtype([(prop.name, order + _NUMPY_TYPES[prop.type]) for prop in vertex.properties])
+    block_rows = max(1, int(block_rows))
+    buffer = np.empty(min(block_rows, vertex.count), dtype)
+    with open(path, "rb") as handle:
+        handle.seek(offset)
+        for start in range(0, vertex.count, block_rows):
+            rows = buffer[: min(block_rows, vertex.count - start)]
+            raw = rows.view(np.uint8)
+            if handle.readinto(raw) != raw.size:
+                raise PlyFormatError(f"{path}: malformed or truncated PLY (the vertex data ends early)")
+            for name, target in columns.items():
+                target[start : start + rows.size] = rows[name]
 
 
 #: Rows per block when writing a PLY (bounds the structured-array temporary: 16 MB at SH degree 3).
@@ -220,11 +294,14 @@ def _ply_dtype(values: np.ndarray) -> str:
     raise PlyFormatError(f"cannot store values of dtype {kind} in a PLY property")
 
 
-def _check_finite_columns(path: Path, table: np.ndarray, columns: list[str], f_rest: np.ndarray,
-                          opacity: np.ndarray) -> None:
+def _all_finite(values: np.ndarray) -> bool:
+    """No NaN or inf in ``values``: min and max propagate NaN and reach +-inf (no temporary array)."""
+    return values.size == 0 or bool(np.isfinite(values.min()) and np.isfinite(values.max()))
+
+
+def _check_finite_columns(path: Path, named: list[tuple[str, np.ndarray]]) -> None:
     """Refuse NaN/inf (after float32 conversion), saying how many, in which properties and where."""
-    named = [(c, np.asarray(table[c], dtype=np.float32)) for c in columns]
-    named += [(f"f_rest_{j}", f_rest[:, j]) for j in range(f_rest.shape[1])] + [("opacity", opacity)]
+    opacity = dict(named)["opacity"]
     bad = [(name, np.flatnonzero(~np.isfinite(values))) for name, values in named]
     bad = [(name, rows) for name, rows in bad if rows.size]
     if not bad:
@@ -240,12 +317,6 @@ def _check_finite_columns(path: Path, table: np.ndarray, columns: list[str], f_r
         hint = "fix or remove those Gaussians (the codec needs finite values)"
     raise PlyFormatError(f"{path}: {total} non-finite value(s) (NaN, inf or beyond float32 range) in "
                          f"{vertices.size} vertices: {shown}; {hint}")
-
-
-def _native(values: np.ndarray) -> np.ndarray:
-    """A copy in native byte order (a big-endian PLY's extra properties write back like any other)."""
-    values = np.array(values)
-    return values.astype(values.dtype.newbyteorder("="), copy=False)
 
 
 def _valid_rest_counts() -> str:

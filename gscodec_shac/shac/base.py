@@ -33,6 +33,7 @@ from gscodec_shac import sh_index
 from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac.limits import MAX_NESTING, json_nesting
 from gscodec_shac.registry import Registry
+from gscodec_shac.row_blocks import GatheredRows
 from gscodec_shac.validate import Where
 
 _STATE_MAGIC = b"SHST"
@@ -175,6 +176,10 @@ class ShStage(ABC):
     #: True when :meth:`fit` also needs the Gaussians' positions (e.g. pca-spatial): the
     #: :class:`~gscodec_shac.codec.encoder.Encoder` hands them over with :meth:`set_positions` first.
     uses_positions: ClassVar[bool] = False
+    #: True when :meth:`fit` and :meth:`transform` only read row slices ``ac[a:b]`` of their input:
+    #: the :class:`~gscodec_shac.codec.encoder.Encoder` then passes a
+    #: :class:`~gscodec_shac.row_blocks.GatheredRows` instead of a grid-order copy (memory).
+    reads_row_blocks: ClassVar[bool] = False
 
     def set_positions(self, positions: np.ndarray) -> None:
         """The (N, 3) positions of the rows the next :meth:`fit` sees (stages with ``uses_positions``)."""
@@ -279,15 +284,21 @@ def stage_from_state(state: StageState) -> ShStage:
     return STAGES.get(state.name).from_state(state)
 
 
-def check_ac_matrix(ac: np.ndarray, expected_columns: int | None = None) -> np.ndarray:
-    """Validate an AC (or [DC | AC]) matrix and return it as a 2-D float array."""
-    ac = np.asarray(ac)
+def check_ac_matrix(ac: np.ndarray | GatheredRows, expected_columns: int | None = None) -> np.ndarray:
+    """Validate an AC (or [DC | AC]) matrix and return it as a 2-D float array (a
+    :class:`~gscodec_shac.row_blocks.GatheredRows` is checked and returned as it is)."""
+    if not isinstance(ac, GatheredRows):
+        ac = np.asarray(ac)
     if ac.ndim != 2:
         raise ValidationError(f"expected a 2-D (N, K') matrix, got shape {ac.shape}")
     if not np.issubdtype(ac.dtype, np.floating):
         raise ValidationError(f"expected a floating-point matrix, got dtype {ac.dtype}")
     if expected_columns is not None and ac.shape[1] != expected_columns:
         raise ValidationError(f"expected {expected_columns} columns, got {ac.shape[1]}")
-    if not np.isfinite(ac).all():
+    if isinstance(ac, GatheredRows):
+        if not ac.all_finite():
+            raise ValidationError("matrix has non-finite values")
+    # min and max propagate NaN and reach +-inf: no (N, K') temporary unless something is wrong
+    elif ac.size and not (np.isfinite(ac.min()) and np.isfinite(ac.max())):
         raise ValidationError(f"matrix has {int((~np.isfinite(ac)).sum())} non-finite values")
     return ac

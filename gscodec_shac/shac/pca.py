@@ -83,6 +83,7 @@ class ShacPCA(ShStage):
     summary = "SHAC-PCA: principal components of the standardised AC matrix (eq. 23-31)"
     feature_kind = "components"
     rate_attribute = "sh_features"
+    reads_row_blocks = True
     params = (
         StageParam("energy_retention", "float", DEFAULT_ENERGY_RETENTION,
                    "energy retention ER(M) (eq. 26) the kept components reach", flag="er", lo=0.0, hi=1.0, open_lo=True),
