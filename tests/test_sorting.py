@@ -8,7 +8,7 @@ import pytest
 import sorting
 from sorting import SortingError
 from sorting import plas as plas_module
-from sorting.morton import grid_z_cells
+from sorting.morton import grid_z_cells, morton_codes_2d
 
 METHODS = ("plas", "morton", "random", "none")
 
@@ -142,6 +142,18 @@ def test_morton_uses_a_two_dimensional_z_layout():
     assert sorting.neighbour_distance(grid) == pytest.approx(1.0)
     assert sorted(grid_z_cells((2, 2)).tolist()) == [0, 1, 2, 3]
     assert grid_z_cells((2, 2)).tolist() == [0, 1, 2, 3]  # (0,0) (0,1) (1,0) (1,1)
+
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (2, 1), (3, 5), (7, 3), (17, 16), (100, 33), (999, 1001), (1024, 1000),
+                                   (5, 100), (1, 40), (513, 257)])
+def test_grid_z_cells_is_the_grid_sorted_by_morton_code(shape):
+    # the counting construction (and, for long thin grids, the sort) lists the cells by ascending code
+    ys, xs = np.divmod(np.arange(shape[0] * shape[1], dtype=np.int64), shape[1])
+    codes = morton_codes_2d(ys, xs)
+    cells = grid_z_cells(shape)
+    assert cells.dtype == np.int64 and sorted(cells.tolist()) == list(range(shape[0] * shape[1]))
+    assert np.all(np.diff(codes[cells].astype(np.float64)) > 0)
 
 
 # ------------------------------------------------------------------ reproducibility
