@@ -17,7 +17,6 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
-import os
 import time
 import zlib
 from concurrent.futures import ThreadPoolExecutor
@@ -40,12 +39,8 @@ from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode
 from gscodec_shac.codec.rate_points import AttributeSpec, RatePoint, load_rate_point
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.gaussians import GaussianCloud
+from gscodec_shac.limits import default_workers
 from gscodec_shac.shac.base import ShStage, make_stage
-
-
-def default_workers() -> int:
-    """Grid-codec calls run in this many threads (x265, PNG and FFmpeg release the GIL)."""
-    return max(1, min(8, os.cpu_count() or 1))
 
 
 @dataclass

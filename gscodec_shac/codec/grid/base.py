@@ -12,12 +12,17 @@ from __future__ import annotations
 
 import struct
 from abc import ABC, abstractmethod
-from typing import Any, ClassVar
+from typing import Any, Callable, ClassVar
 
 import numpy as np
 
 from gscodec_shac.errors import BitstreamError, CodecUnavailableError, ValidationError
 from gscodec_shac.registry import Registry
+
+
+#: Receives decoded planes as they come: ``sink(first_channel, planes)`` with (k, H, W) uint16 planes
+#: of channels ``first_channel .. first_channel + k - 1`` (its own array; called from codec threads).
+PlaneSink = Callable[[int, np.ndarray], None]
 
 
 class GridCodec(ABC):
@@ -46,6 +51,11 @@ class GridCodec(ABC):
     @abstractmethod
     def decode(self, data: bytes, shape: tuple[int, int, int], bit_depth: int) -> np.ndarray:
         """Bytes -> (C, H, W) uint16 planes of exactly ``shape``; raise BitstreamError otherwise."""
+
+    def decode_into(self, data: bytes, shape: tuple[int, int, int], bit_depth: int, sink: PlaneSink) -> None:
+        """:meth:`decode`, the planes handed to ``sink`` (a codec that decodes picture by picture,
+        such as ``hevc``, calls it per picture, so the caller's work overlaps the decoding)."""
+        sink(0, self.decode(data, shape, bit_depth))
 
     # -------------------------------------------------------------- helpers
     def describe(self) -> dict[str, Any]:
