@@ -19,14 +19,16 @@ import hashlib
 import json
 import time
 import zlib
-from concurrent.futures import ThreadPoolExecutor
+import heapq
+import itertools
+import threading
+from concurrent.futures import Future
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, Callable, Iterator, Mapping
 
 import numpy as np
-from tqdm.auto import tqdm
 
 import gscodec_shac
 from gscodec_shac.codec import quantize as qz
@@ -45,14 +47,77 @@ from gscodec_shac.shac.base import ShStage, make_stage
 
 @dataclass
 class _Job:
-    """One chunk to code: its planes, codec and the chunk-table entry it will get."""
+    """One chunk being coded: the chunk-table entry it will get and its pieces of work running in
+    the scheduler (or its bytes, from the chunk cache)."""
 
     name: str
-    codec: GridCodec
-    planes: np.ndarray
-    bits: int
-    qp: int | None
-    meta: dict[str, Any] = field(default_factory=dict)
+    meta: dict[str, Any]
+    parts: list[Future] = field(default_factory=list)
+    join: Callable[[list[bytes]], bytes] | None = None
+    key: tuple | None = None
+    data: bytes | None = None
+
+    def result(self) -> bytes:
+        if self.data is None:
+            self.data = self.join([part.result() for part in self.parts])  # type: ignore[misc]
+            self.parts = []
+        return self.data
+
+
+class _Scheduler:
+    """``workers`` threads running submitted work, the costliest pending piece first.
+
+    The encoder submits each chunk's pieces (:meth:`GridCodec.encode_parts`) as soon as its
+    planes exist, so the grid codecs run while the SH stage is still being fitted, and a long
+    piece queued late (the SH planes) still starts before shorter ones. A piece's output does
+    not depend on when or in which thread it runs, so neither do the bytes.
+    """
+
+    def __init__(self, workers: int) -> None:
+        self.workers = max(1, workers)
+        self._pending: list[tuple[int, int, Callable[[], Any], Future]] = []
+        self._wake = threading.Condition()
+        self._threads: list[threading.Thread] = []
+        self._closed = False
+        self._tickets = itertools.count()
+
+    def submit(self, cost: int, work: Callable[[], Any]) -> Future:
+        """Queue ``work`` (costlier first; equal costs in submission order)."""
+        future: Future = Future()
+        with self._wake:
+            heapq.heappush(self._pending, (-int(cost), next(self._tickets), work, future))
+            if len(self._threads) < self.workers:
+                thread = threading.Thread(target=self._run, name="gscodec-encode", daemon=True)
+                self._threads.append(thread)
+                thread.start()
+            self._wake.notify()
+        return future
+
+    def _run(self) -> None:
+        while True:
+            with self._wake:
+                while not self._pending and not self._closed:
+                    self._wake.wait()
+                if not self._pending:
+                    return
+                _, _, work, future = heapq.heappop(self._pending)
+            if future.set_running_or_notify_cancel():
+                try:
+                    future.set_result(work())
+                except BaseException as exc:  # re-raised in the caller by future.result()
+                    future.set_exception(exc)
+            del work, future
+
+    def close(self) -> None:
+        """Drop the pieces not started, let the running ones finish and join the threads."""
+        with self._wake:
+            for *_, future in self._pending:
+                future.cancel()
+            self._pending = []
+            self._closed = True
+            self._wake.notify_all()
+        for thread in self._threads:
+            thread.join()
 
 
 class Encoder:
@@ -127,9 +192,7 @@ class Encoder:
         with self._timed("sort"):
             kept, grid, cells, grid_cloud = self._cached("grid", lambda: self._placement(cloud, grid))
             self.order_ = kept[grid.order[cells]]
-        with self._timed("sh_stage"):
-            stage, features = self._sh_features(grid_cloud)
-
+        stage = self._make_stage(grid_cloud)
         stream = Bitstream()
         n = grid_cloud.num_gaussians
         padding = grid.padding
@@ -139,20 +202,33 @@ class Encoder:
         cell_rows = grid.cell_rows(cells)
         ycbcr = rp.color == "ycbcr"
         attributes: dict[str, Any] = {}
-        with self._timed("quantize"):
-            for name, attr in ATTRIBUTES.items():
-                if name == "sh_dc" and stage is not None and stage.uses_dc:
-                    continue  # the DC travels inside the stage's features
-                values = attr.forward(grid_cloud, ycbcr)
-                if name == "positions" and rp.positions_as_set:
-                    attributes[name] = self._code_position_set(values, rp.attributes[name], stream)
-                    continue
-                attributes[name] = self._code_values(name, attr.transform, values, rp.attributes[name], cell_rows,
-                                                     grid.shape, attr.groups)
+        features = None
+        self._scheduler = _Scheduler(self.workers)
+        try:
+            # The other attributes' chunks are queued, and start coding, before the SH stage is fitted.
+            with self._timed("quantize"):
+                for name, attr in ATTRIBUTES.items():
+                    if name == "sh_dc" and stage is not None and stage.uses_dc:
+                        continue  # the DC travels inside the stage's features
+                    values = attr.forward(grid_cloud, ycbcr)
+                    if name == "positions" and rp.positions_as_set:
+                        attributes[name] = self._code_position_set(values, rp.attributes[name], stream)
+                        continue
+                    attributes[name] = self._code_values(name, attr.transform, values, rp.attributes[name],
+                                                         cell_rows, grid.shape, attr.groups)
+            with self._timed("sh_stage"):
+                features = self._sh_features(stage, grid_cloud)
             if features is not None and features.shape[1]:
-                attributes["sh"], features = self._code_sh(stage, features, cell_rows, grid.shape)
-        with self._timed("code"):
-            self._run_jobs(stream)
+                attributes["sh"], features = self._code_sh(stage, features, cell_rows, grid.shape)  # type: ignore[arg-type]
+            with self._timed("code"):
+                for job in _progress(self._jobs, self.progress):  # chunks enter the stream in queue order
+                    data = job.result()
+                    if job.key is not None:
+                        self._chunk_cache[job.key] = data  # type: ignore[index]
+                    stream.add_chunk(job.name, data, **job.meta)
+        finally:
+            self._scheduler.close()
+            self._jobs = []
 
         sh_header = None
         if stage is not None:
@@ -206,12 +282,18 @@ class Encoder:
         self.timings_[step] = time.perf_counter() - tic
 
     # -------------------------------------------------------------- steps
-    def _sh_features(self, cloud: GaussianCloud) -> tuple[ShStage | None, np.ndarray | None]:
+    def _make_stage(self, cloud: GaussianCloud) -> ShStage | None:
+        """The SH stage to fit (None for SH degree 0); a caller's stage is copied, as water-filling
+        may drop features of the copy."""
         if cloud.sh_degree == 0:
-            return None, None
-        # a caller's stage is copied: water-filling may drop features of the copy
+            return None
         stage = copy.deepcopy(self._stage_instance) or make_stage(self.rate_point.sh_stage, **self.rate_point.sh_params)
         stage.progress = self.progress
+        return stage
+
+    def _sh_features(self, stage: ShStage | None, cloud: GaussianCloud) -> np.ndarray | None:
+        if stage is None:
+            return None
         ac = cloud.ac_matrix()
         if stage.uses_dc:
             ac = np.concatenate([cloud.sh_dc, ac], axis=1)
@@ -219,17 +301,23 @@ class Encoder:
         if fit and stage.uses_positions:
             stage.set_positions(cloud.means)
         if fit:
-            return stage, np.asarray(stage.fit_transform(ac))
+            return np.asarray(stage.fit_transform(ac))
         # a fitted caller's stage transforms the same cloud to the same features: once per placement
-        return stage, self._cached(f"features-{id(self._stage_instance)}", lambda: np.asarray(stage.transform(ac)))
+        return self._cached(f"features-{id(self._stage_instance)}", lambda: np.asarray(stage.transform(ac)))
 
     def _code_position_set(self, values: np.ndarray, spec: AttributeSpec, stream: Bitstream) -> dict:
         """Positions as a Morton-sorted set (:mod:`.positions`); the grid order is their Morton order."""
         quantizer = qz.Quantizer.fit(values, spec.bits)
-        data = self._cached(f"positions-{spec.bits}",
-                            lambda: encode_sorted_codes(morton_encode(quantizer.quantize(values))))
         stream.require("positions_set")
-        stream.add_chunk("positions", data, attribute="positions", encoding="morton_set", bits=spec.bits)
+        job = _Job("positions", {"attribute": "positions", "encoding": "morton_set", "bits": spec.bits})
+        key = ("__work__", f"positions-{spec.bits}", self._work_key)
+        if self._work_key is not None and key in self._chunk_cache:  # type: ignore[operator]
+            job.data = self._chunk_cache[key]  # type: ignore[index]
+        else:
+            codes = morton_encode(quantizer.quantize(values))
+            job.parts, job.join = [self._scheduler.submit(3 * len(codes), lambda: encode_sorted_codes(codes))], _first
+            job.key = key if self._work_key is not None else None
+        self._jobs.append(job)
         return {"chunks": ["positions"], "channels": 3, "coding": "set", "transform": ATTRIBUTES["positions"].transform,
                 "quantizer": quantizer.to_json()}
 
@@ -304,23 +392,14 @@ class Encoder:
         codec, index = self._codec(spec.codec, spec.options)
         meta = {"attribute": attribute, "channels": list(channels), "part": part,
                 "shape": list(planes.shape), "bits": bits, "qp": qp, "codec": index}
-        self._jobs.append(_Job(chunk, codec, planes, bits, qp, meta))
-
-    def _run_jobs(self, stream: Bitstream) -> None:
-        """Code the queued chunks in threads (or take them from the chunk cache); chunks enter the
-        stream in queue order."""
-        cache = self._chunk_cache
-        keys = [_cache_key(job) if cache is not None else None for job in self._jobs]
-        with ThreadPoolExecutor(self.workers) as pool:
-            futures = [None if key in (cache or {}) else pool.submit(job.codec.encode, job.planes, job.bits, job.qp)
-                       for job, key in zip(self._jobs, keys)]
-            for job, key, future in tqdm(list(zip(self._jobs, keys, futures)), desc="encode", unit="chunk",
-                                         disable=not self.progress, leave=False):
-                data = cache[key] if future is None else future.result()
-                if cache is not None:
-                    cache[key] = data
-                stream.add_chunk(job.name, data, **job.meta)
-        self._jobs = []
+        job = _Job(chunk, meta)
+        if self._chunk_cache is not None:
+            job.key = _cache_key(chunk, codec, planes, bits, qp)
+            job.data = self._chunk_cache.get(job.key)
+        if job.data is None:
+            parts, job.join = codec.encode_parts(planes, bits, qp)
+            job.parts = [self._scheduler.submit(cost, work) for cost, work in parts]
+        self._jobs.append(job)
 
     def _codec(self, name: str, options: dict) -> tuple[GridCodec, int]:
         """A codec instance and its index in the header's codec table."""
@@ -337,7 +416,20 @@ def _work_key(rp: RatePoint) -> str:
                        rp.sort.to_json(), rp.sort.multiple], sort_keys=True, default=str)
 
 
-def _cache_key(job: _Job) -> tuple:
+def _cache_key(name: str, codec: GridCodec, planes: np.ndarray, bits: int, qp: int | None) -> tuple:
     """What decides a chunk's bytes: its name, codec and settings, and its planes."""
-    digest = hashlib.sha1(np.ascontiguousarray(job.planes).view(np.uint8)).hexdigest()
-    return (job.name, json.dumps(job.codec.describe(), sort_keys=True), job.bits, job.qp, job.planes.shape, digest)
+    digest = hashlib.sha1(np.ascontiguousarray(planes).view(np.uint8)).hexdigest()
+    return (name, json.dumps(codec.describe(), sort_keys=True), bits, qp, planes.shape, digest)
+
+
+def _first(outputs: list[bytes]) -> bytes:
+    return outputs[0]
+
+
+def _progress(jobs: list[_Job], show: bool) -> Iterator[_Job]:
+    """The jobs, with a progress bar when ``show``."""
+    if not show:
+        return iter(jobs)
+    from tqdm.auto import tqdm
+
+    return iter(tqdm(jobs, desc="encode", unit="chunk", leave=False))

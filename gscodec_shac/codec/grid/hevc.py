@@ -40,7 +40,7 @@ from typing import Iterator
 import av
 import numpy as np
 
-from gscodec_shac.codec.grid.base import GridCodec, PlaneSink, join_chunks, register_codec, split_chunks
+from gscodec_shac.codec.grid.base import EncodeParts, GridCodec, PlaneSink, join_chunks, register_codec, split_chunks
 from gscodec_shac.errors import BitstreamError, CodecUnavailableError, ValidationError
 
 LAYOUTS = ("gray", "yuv444", "frames")
@@ -105,22 +105,28 @@ class HevcCodec(GridCodec):
 
     # ------------------------------------------------------------------ encode
     def encode(self, planes: np.ndarray, bit_depth: int, qp: int | None) -> bytes:
+        parts, join = self.encode_parts(planes, bit_depth, qp)
+        return join([work() for _, work in parts])
+
+    def encode_parts(self, planes: np.ndarray, bit_depth: int, qp: int | None) -> EncodeParts:
+        """One piece per stream of the layout (x265 runs each independently; cost: its samples)."""
         planes = self._check_planes(planes, bit_depth, qp)
         check_qp(self.name, qp)
         depth = coding_depth(self.name, bit_depth, self.depth)
         shift = 0 if qp is None else depth - bit_depth
         grid = pad_to_codable(planes << shift if shift else planes, self.layout)
-        streams = []
+        parts = []
         for first, n_frames, chroma in stream_plan(self.layout, len(grid)):
             if chroma:
-                streams.append(self._encode_stream([grid[first : first + 3]], _YUV444_FMT[depth], qp, ""))
-                continue
-            gop = ""
-            if n_frames > 1:  # the frames layout: one I frame, then inter frames
-                gop = f":keyint={n_frames}:min-keyint={n_frames}:scenecut=0"
-                gop += f":bframes={self.bframes}" if self.bframes is not None else ""
-            streams.append(self._encode_stream(list(grid[first : first + n_frames]), _GRAY_FMT[depth], qp, gop))
-        return bytes([LAYOUTS.index(self.layout), shift]) + join_chunks(streams)
+                frames, pix_fmt, gop = [grid[first : first + 3]], _YUV444_FMT[depth], ""
+            else:
+                frames, pix_fmt, gop = list(grid[first : first + n_frames]), _GRAY_FMT[depth], ""
+                if n_frames > 1:  # the frames layout: one I frame, then inter frames
+                    gop = f":keyint={n_frames}:min-keyint={n_frames}:scenecut=0"
+                    gop += f":bframes={self.bframes}" if self.bframes is not None else ""
+            parts.append((sum(f.size for f in frames), functools.partial(self._encode_stream, frames, pix_fmt, qp, gop)))
+        head = bytes([LAYOUTS.index(self.layout), shift])
+        return parts, lambda streams: head + join_chunks(streams)
 
     def _encode_stream(self, frames: list[np.ndarray], pix_fmt: str, qp: int | None, extra: str) -> bytes:
         """Encode frames ((H, W) or (3, H, W) arrays) into one Annex-B stream."""
