@@ -76,7 +76,7 @@ class Decoder:
         # declaring a huge grid over small pictures fails the codec's picture-size check first.
         cells = _Once(lambda: occupied_cells(view.padding, shape, n, mask))
         ycbcr = view.color == "ycbcr"
-        streamed = {name: _Dequantized(entry, n, cells) for name, entry in view.attributes.items()
+        streamed = {name: _Dequantized(entry, n, cells, ycbcr) for name, entry in view.attributes.items()
                     if entry.coding == "planes" and entry.quantizer is not None
                     and all(p.part == "all" for p in view.chunks if p.attribute == name)}
         tasks = [_ChunkTask(plan, stream.chunk(plan.name), codecs[plan.codec], shape, streamed.get(plan.attribute))
@@ -93,7 +93,8 @@ class Decoder:
                 future.result()
             planes = [futures[i].result() for i in range(len(tasks))]
             out = {name: future.result() for name, future in set_futures.items()}
-        values = {name: target.values() for name, target in streamed.items()}
+        values = {name: target.values() for name, target in streamed.items() if target.done is None}
+        out = {**out, **{name: target.done for name, target in streamed.items() if target.done is not None}}
         values.update({
             name: _assemble(entry, [(t, p) for t, p in zip(tasks, planes) if t.plan.attribute == name], shape, cells(),
                             self.workers)
@@ -141,15 +142,23 @@ class _Dequantized:
     while the codec goes on with the next one.
     """
 
-    def __init__(self, entry: AttributeEntry, n: int, cells: _Once) -> None:
+    def __init__(self, entry: AttributeEntry, n: int, cells: _Once, ycbcr: bool) -> None:
         self.tables = entry.quantizer.tables()  # type: ignore[union-attr]
         self.cells = cells
         self.out = np.empty((entry.channels, n), dtype=np.float32)
+        self.inverse = ATTRIBUTES[entry.name].inverse if entry.name in ATTRIBUTES else None
+        self.ycbcr, self.missing, self.done = ycbcr, entry.channels, None
+        self._lock = threading.Lock()
 
     def put(self, channel: int, planes: np.ndarray) -> None:
         cells = self.cells()
         for k, plane in enumerate(planes):
             np.take(self.tables[channel + k], np.take(plane.reshape(-1), cells), mode="clip", out=self.out[channel + k])
+        with self._lock:
+            self.missing -= len(planes)
+            last = self.missing == 0
+        if last and self.inverse is not None:  # a cloud attribute: its row-major values, in this thread
+            self.done = np.ascontiguousarray(self.inverse(self.out.T, self.ycbcr), dtype=np.float32)
 
     def values(self) -> np.ndarray:
         """(N, C) values (a column-major view)."""

@@ -288,6 +288,7 @@ def check_ac_matrix(ac: np.ndarray, expected_columns: int | None = None) -> np.n
         raise ValidationError(f"expected a floating-point matrix, got dtype {ac.dtype}")
     if expected_columns is not None and ac.shape[1] != expected_columns:
         raise ValidationError(f"expected {expected_columns} columns, got {ac.shape[1]}")
-    if not np.isfinite(ac).all():
+    # min and max propagate NaN and reach +-inf: two passes without the (N, K') boolean temporary
+    if ac.size and not (np.isfinite(ac.min()) and np.isfinite(ac.max())):
         raise ValidationError(f"matrix has {int((~np.isfinite(ac)).sum())} non-finite values")
     return ac
