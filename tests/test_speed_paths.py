@@ -110,16 +110,22 @@ def test_scheduler_runs_the_costliest_pending_piece_first():
 
     from gscodec_shac.codec.encoder import _Scheduler
 
-    scheduler, started, order = _Scheduler(1), threading.Event(), []
+    scheduler, started, order = _Scheduler(2), threading.Event(), []  # one thread, then the caller's
     gate = threading.Event()
     first = scheduler.submit(0, lambda: (started.set(), gate.wait(10)))
     started.wait(10)  # the one thread is busy: the next pieces wait in the queue
     futures = [scheduler.submit(cost, lambda cost=cost: order.append(cost)) for cost in (1, 5, 3, 5)]
+    scheduler.work_until(futures)  # the caller runs them, costliest first, while the thread is busy
     gate.set()
-    for future in [first, *futures]:
-        future.result(10)
+    first.result(10)
     scheduler.close()
     assert order == [5, 5, 3, 1]
+    serial = _Scheduler(1)  # no thread: every piece runs in the caller's thread, in cost order
+    ran = []
+    futures = [serial.submit(cost, lambda cost=cost: ran.append((cost, threading.get_ident()))) for cost in (2, 9)]
+    serial.work_until(futures)
+    serial.close()
+    assert ran == [(9, threading.get_ident()), (2, threading.get_ident())]
 
 
 def test_hevc_stream_pieces_in_any_order_join_to_the_encode():

@@ -22,7 +22,7 @@ import zlib
 import heapq
 import itertools
 import threading
-from concurrent.futures import Future
+from concurrent.futures import Future, wait
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,27 +57,32 @@ class _Job:
     key: tuple | None = None
     data: bytes | None = None
 
-    def result(self) -> bytes:
+    def result(self, scheduler: _Scheduler) -> bytes:
+        """The chunk's bytes; the caller's thread runs pending pieces meanwhile."""
         if self.data is None:
+            scheduler.work_until(self.parts)
             self.data = self.join([part.result() for part in self.parts])  # type: ignore[misc]
             self.parts = []
         return self.data
 
 
 class _Scheduler:
-    """``workers`` threads running submitted work, the costliest pending piece first.
+    """Runs submitted work in ``workers`` threads, the costliest pending piece first.
 
-    The encoder submits each chunk's pieces (:meth:`GridCodec.encode_parts`) as soon as its
-    planes exist, so the grid codecs run while the SH stage is still being fitted, and a long
-    piece queued late (the SH planes) still starts before shorter ones. A piece's output does
-    not depend on when or in which thread it runs, so neither do the bytes.
+    ``workers - 1`` threads start with the first piece; the caller's thread is the last worker
+    once it waits for results (:meth:`work_until`), so at most ``workers`` pieces run at once
+    (as many x265 instances in memory as before) and the SH pieces, queued after the SH stage
+    is fitted, start as soon as they are queued. The encoder submits each chunk's pieces
+    (:meth:`GridCodec.encode_parts`) as soon as its planes exist, so the other attributes are
+    coded while the SH stage is fitted. A piece's output does not depend on when or in which
+    thread it runs, so neither do the bytes.
     """
 
     def __init__(self, workers: int) -> None:
-        self.workers = max(1, workers)
+        self.threads = max(1, workers) - 1
         self._pending: list[tuple[int, int, Callable[[], Any], Future]] = []
         self._wake = threading.Condition()
-        self._threads: list[threading.Thread] = []
+        self._started: list[threading.Thread] = []
         self._closed = False
         self._tickets = itertools.count()
 
@@ -86,27 +91,42 @@ class _Scheduler:
         future: Future = Future()
         with self._wake:
             heapq.heappush(self._pending, (-int(cost), next(self._tickets), work, future))
-            if len(self._threads) < self.workers:
+            if len(self._started) < self.threads:
                 thread = threading.Thread(target=self._run, name="gscodec-encode", daemon=True)
-                self._threads.append(thread)
+                self._started.append(thread)
                 thread.start()
             self._wake.notify()
         return future
 
+    def _next(self, block: bool) -> tuple | None:
+        with self._wake:
+            while block and not self._pending and not self._closed:
+                self._wake.wait()
+            return heapq.heappop(self._pending) if self._pending else None
+
+    @staticmethod
+    def _execute(item: tuple) -> None:
+        *_, work, future = item
+        if future.set_running_or_notify_cancel():
+            try:
+                future.set_result(work())
+            except BaseException as exc:  # re-raised in the caller by future.result()
+                future.set_exception(exc)
+
     def _run(self) -> None:
-        while True:
-            with self._wake:
-                while not self._pending and not self._closed:
-                    self._wake.wait()
-                if not self._pending:
-                    return
-                _, _, work, future = heapq.heappop(self._pending)
-            if future.set_running_or_notify_cancel():
-                try:
-                    future.set_result(work())
-                except BaseException as exc:  # re-raised in the caller by future.result()
-                    future.set_exception(exc)
-            del work, future
+        while (item := self._next(block=True)) is not None:
+            self._execute(item)
+            del item
+
+    def work_until(self, futures: list[Future]) -> None:
+        """Run pending pieces in this thread until ``futures`` are done (waiting once none is pending)."""
+        while not all(future.done() for future in futures):
+            item = self._next(block=False)
+            if item is None:
+                wait(futures)
+                return
+            self._execute(item)
+            del item
 
     def close(self) -> None:
         """Drop the pieces not started, let the running ones finish and join the threads."""
@@ -116,7 +136,7 @@ class _Scheduler:
             self._pending = []
             self._closed = True
             self._wake.notify_all()
-        for thread in self._threads:
+        for thread in self._started:
             thread.join()
 
 
@@ -222,7 +242,7 @@ class Encoder:
                 attributes["sh"], features = self._code_sh(stage, features, cell_rows, grid.shape)  # type: ignore[arg-type]
             with self._timed("code"):
                 for job in _progress(self._jobs, self.progress):  # chunks enter the stream in queue order
-                    data = job.result()
+                    data = job.result(self._scheduler)
                     if job.key is not None:
                         self._chunk_cache[job.key] = data  # type: ignore[index]
                     stream.add_chunk(job.name, data, **job.meta)
