@@ -163,3 +163,8 @@ def check_image_file(path: str | os.PathLike, error: type[Exception]) -> None:
     if size is not None and (max(size) > MAX_IMAGE_SIDE or size[0] * size[1] > MAX_IMAGE_PIXELS):
         raise error(f"{path}: a {size[0]}x{size[1]} image exceeds the maximum ({MAX_IMAGE_SIDE:,} pixels a side, "
                     f"{MAX_IMAGE_PIXELS:,} pixels in all)")
+
+
+def default_workers() -> int:
+    """Grid-codec calls run in this many threads (x265, PNG and FFmpeg release the GIL)."""
+    return max(1, min(8, os.cpu_count() or 1))

@@ -13,7 +13,8 @@ its children, from ``os.wait4``) and peak RSS:
   file (skipped, with a line saying why, when node or the tool is absent);
 
 plus ``startup``: ``gscodec-shac decode`` of a 300-Gaussian fixture stream (start-up cost).
-``--baseline ../main`` runs every decode step under that checkout too, right before ours.
+``--baseline ../main`` runs the encode and every decode step under that checkout too, right
+before ours (the baseline's stream is overwritten by ours; both must be the same bytes).
 Ratios (target / encode, decode / spz_read, encode / spz_write) are printed; all rows go
 to ``OUT/bench_speed.json`` and ``.csv`` with the load average at each step.
 
@@ -86,7 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-target", action="store_true", help="skip the --target-bpg encodes")
     parser.add_argument("--no-peer", action="store_true", help="skip splat-transform")
     parser.add_argument("--nice", type=int, default=5, help="niceness of the measured processes")
-    parser.add_argument("--baseline", type=Path, help="another checkout: its decodes run right before ours (paired)")
+    parser.add_argument("--baseline", type=Path,
+                        help="another checkout: its encode and decodes run right before ours (paired)")
     args = parser.parse_args(argv)
     args.out = args.out.resolve()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -103,12 +105,12 @@ def main(argv: list[str] | None = None) -> int:
               f"peak {row.get('peak_rss_gb', float('nan')):6.2f} GB  load {row['load']:.1f}", flush=True)
         return row
 
-    def decode_step(size: str, step: str, command: list[str]) -> dict:
+    def paired_step(size: str, step: str, command: list[str]) -> dict:
         if args.baseline is not None:
             record(size, step + "@baseline", measured(command, args.nice, args.baseline.resolve()))
         return record(size, step, measured(command, args.nice))
 
-    decode_step("300", "startup", [*cli, "decode", str(TINY), str(args.out / "tiny.ply"), "--force"])
+    paired_step("300", "startup", [*cli, "decode", str(TINY), str(args.out / "tiny.ply"), "--force"])
     for n in (parse_size(s) for s in args.sizes.split(",")):
         size = label(n)
         ply, gsc, dec = (args.out / size / f"s{size}{ext}" for ext in (".ply", ".gsc", "_dec.ply"))
@@ -116,9 +118,9 @@ def main(argv: list[str] | None = None) -> int:
             ply.parent.mkdir(exist_ok=True)
             measured([*cli, "synthetic", str(ply), "-n", str(n), "--views", "4", "-q", "--force"], args.nice)
         point = ["-r", args.rate_point, "--sh", "pca", "--er", "0.97", "--force"]
-        enc = record(size, "encode", measured([*cli, "encode", str(ply), str(gsc), *point], args.nice))
-        decode_step(size, "decode_arrays", [sys.executable, "-c", DECODE_ARRAYS, str(gsc)])
-        decode = decode_step(size, "decode", [*cli, "decode", str(gsc), str(dec), "--force"])
+        enc = paired_step(size, "encode", [*cli, "encode", str(ply), str(gsc), *point])
+        paired_step(size, "decode_arrays", [sys.executable, "-c", DECODE_ARRAYS, str(gsc)])
+        decode = paired_step(size, "decode", [*cli, "decode", str(gsc), str(dec), "--force"])
         if not args.no_target:
             target = record(size, "target_bpg", measured(
                 [*cli, "encode", str(ply), str(args.out / size / f"s{size}_target.gsc"), "--target-bpg",

@@ -36,24 +36,60 @@ def morton_codes(points: np.ndarray) -> np.ndarray:
     levels = (1 << bits) - 1
     q = np.clip(np.rint((pts - lo) / span * levels), 0, levels).astype(np.uint64)
     codes = np.zeros(n, dtype=np.uint64)
-    one = np.uint64(1)
-    for bit in range(bits):
-        for dim in range(d):
-            codes |= ((q[:, dim] >> np.uint64(bit)) & one) << np.uint64(bit * d + dim)
+    # Bit b of dimension j goes to bit b * d + j: per dimension, runs of up to 8 bits are
+    # spread by a lookup table (a few whole-array passes instead of four per bit).
+    for dim in range(d):
+        for start in range(0, bits, 8):
+            width = min(8, bits - start)
+            part = q[:, dim] if width == bits else (q[:, dim] >> np.uint64(start)) & np.uint64((1 << width) - 1)
+            codes |= _spread_table(width, start, d, dim)[part.astype(np.intp)]
     return codes
 
 
+def _spread_table(width: int, start: int, d: int, dim: int) -> np.ndarray:
+    """(2^width,) uint64: bit j of each index moved to bit (start + j) * d + dim."""
+    values = np.arange(1 << width, dtype=np.uint64)
+    table = np.zeros(1 << width, dtype=np.uint64)
+    for j in range(width):
+        table |= ((values >> np.uint64(j)) & np.uint64(1)) << np.uint64((start + j) * d + dim)
+    return table
+
+
 def grid_z_cells(shape: tuple[int, int]) -> np.ndarray:
-    """Cell indices (row-major) of a grid visited in 2-D Z-order."""
+    """Cell indices (row-major) of a grid visited in 2-D Z-order (ascending :func:`morton_codes_2d`).
+
+    The Z-order codes of the smallest power-of-two square holding the grid are all the
+    integers below its area, so counting through them and keeping the cells inside the
+    grid lists the grid in Z-order without a sort (linear; the same cells as sorting the
+    grid's codes). A grid much longer than wide, whose square is more than 4x its area,
+    is sorted instead.
+    """
     h, w = check_shape(shape)
-    ys, xs = np.divmod(np.arange(h * w, dtype=np.int64), w)
-    codes = morton_codes_2d(ys, xs)
-    return np.argsort(codes, kind="stable")
+    side = 1 << max(h - 1, w - 1).bit_length()
+    if side * side > 4 * h * w:
+        ys, xs = np.divmod(np.arange(h * w, dtype=np.int64), w)
+        return np.argsort(morton_codes_2d(ys, xs), kind="stable")
+    codes = np.arange(side * side, dtype=np.uint32 if side <= 1 << 16 else np.uint64)
+    xs, ys = _compact_2d(codes), _compact_2d(codes >> codes.dtype.type(1))
+    inside = (xs < w) & (ys < h)
+    return ys[inside].astype(np.int64) * w + xs[inside]
 
 
 def morton_codes_2d(ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
     """Interleave the bits of integer cell coordinates below 2**31 (x in the even bits)."""
     return _spread_2d(xs) | (_spread_2d(ys) << np.uint64(1))
+
+
+def _compact_2d(x: np.ndarray) -> np.ndarray:
+    """The even bits of each uint32 / uint64, packed (the inverse of :func:`_spread_2d`); same dtype."""
+    t, wide = x.dtype.type, x.dtype == np.uint64
+    x = x & t(0x5555555555555555 if wide else 0x55555555)
+    for shift, mask in ((1, 0x3333333333333333), (2, 0x0F0F0F0F0F0F0F0F), (4, 0x00FF00FF00FF00FF),
+                        (8, 0x0000FFFF0000FFFF), (16, 0x00000000FFFFFFFF)):
+        if shift == 16 and not wide:
+            break
+        x = (x | (x >> t(shift))) & t(mask & (0xFFFFFFFFFFFFFFFF if wide else 0xFFFFFFFF))
+    return x
 
 
 def _spread_2d(v: np.ndarray) -> np.ndarray:

@@ -8,7 +8,7 @@ import pytest
 import sorting
 from sorting import SortingError
 from sorting import plas as plas_module
-from sorting.morton import grid_z_cells
+from sorting.morton import grid_z_cells, morton_codes_2d
 
 METHODS = ("plas", "morton", "random", "none")
 
@@ -142,6 +142,37 @@ def test_morton_uses_a_two_dimensional_z_layout():
     assert sorting.neighbour_distance(grid) == pytest.approx(1.0)
     assert sorted(grid_z_cells((2, 2)).tolist()) == [0, 1, 2, 3]
     assert grid_z_cells((2, 2)).tolist() == [0, 1, 2, 3]  # (0,0) (0,1) (1,0) (1,1)
+
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (2, 1), (3, 5), (7, 3), (17, 16), (100, 33), (999, 1001), (1024, 1000),
+                                   (5, 100), (1, 40), (513, 257)])
+def test_grid_z_cells_is_the_grid_sorted_by_morton_code(shape):
+    # the counting construction (and, for long thin grids, the sort) lists the cells by ascending code
+    ys, xs = np.divmod(np.arange(shape[0] * shape[1], dtype=np.int64), shape[1])
+    codes = morton_codes_2d(ys, xs)
+    cells = grid_z_cells(shape)
+    assert cells.dtype == np.int64 and sorted(cells.tolist()) == list(range(shape[0] * shape[1]))
+    assert np.all(np.diff(codes[cells].astype(np.float64)) > 0)
+
+
+
+@pytest.mark.parametrize("d", [1, 2, 3, 5, 9, 14, 21, 32, 63, 70])
+def test_morton_codes_interleave_every_bit(d):
+    # the table-driven interleave against its definition: bit b of dimension j at bit b * d + j
+    rng = np.random.default_rng(d)
+    points = rng.standard_normal((2000, d))
+    codes = sorting.morton.morton_codes(points)
+    kept = min(d, 63)
+    bits = min(21, 63 // kept)
+    x = points[:, :kept]
+    span = np.where(np.ptp(x, axis=0) > 0, np.ptp(x, axis=0), 1.0)
+    q = np.clip(np.rint((x - x.min(axis=0)) / span * ((1 << bits) - 1)), 0, (1 << bits) - 1).astype(np.uint64)
+    want = np.zeros(len(points), dtype=np.uint64)
+    for bit in range(bits):
+        for dim in range(kept):
+            want |= ((q[:, dim] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(bit * kept + dim)
+    assert np.array_equal(codes, want)
 
 
 # ------------------------------------------------------------------ reproducibility

@@ -21,12 +21,31 @@ grid/           grid codecs by name (hevc, png, jpegls, raw, hm)
 See docs/architecture.md for the data flow.
 """
 
-from gscodec_shac.codec.container import Bitstream
-from gscodec_shac.codec.decoder import Decoder
-from gscodec_shac.codec.encoder import Encoder
-from gscodec_shac.codec.files import decode_file, encode_file, encode_file_to_target
-from gscodec_shac.codec.layout import GridOrder
-from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
+from __future__ import annotations
 
-__all__ = ["Bitstream", "Decoder", "Encoder", "GridOrder", "RatePoint", "decode_file", "encode_file",
-           "encode_file_to_target", "load_rate_point"]
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from gscodec_shac.codec.container import Bitstream
+    from gscodec_shac.codec.decoder import Decoder
+    from gscodec_shac.codec.encoder import Encoder
+    from gscodec_shac.codec.files import decode_file, encode_file, encode_file_to_target
+    from gscodec_shac.codec.layout import GridOrder
+    from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
+
+#: Where each public name lives; imported on first use (PEP 562), so a decode does not load
+#: the encoder, the rate controller and the YAML loader (about 0.1 s of start-up).
+_PUBLIC = {"Bitstream": "container", "Decoder": "decoder", "Encoder": "encoder", "GridOrder": "layout",
+           "RatePoint": "rate_points", "load_rate_point": "rate_points", "decode_file": "files",
+           "encode_file": "files", "encode_file_to_target": "files"}
+
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _PUBLIC:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{_PUBLIC[name]}"), name)
+    globals()[name] = value
+    return value

@@ -12,25 +12,25 @@ memory budget: :class:`MemoryLimitError`).
 
 from __future__ import annotations
 
+import threading
 import zlib
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
+from typing import Callable, Iterable
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from gscodec_shac import sh_index
 from gscodec_shac.codec import quantize as qz
 from gscodec_shac.codec.attributes import ATTRIBUTES
 from gscodec_shac.codec.container import Bitstream, Chunk
-from gscodec_shac.codec.encoder import default_workers
 from gscodec_shac.codec.grid.base import GridCodec, get_codec
 from gscodec_shac.codec.header import AttributeEntry, ChunkPlan, StreamHeader, inflate, read_header, read_stage
 from gscodec_shac.codec.layout import occupied, occupied_cells, unpack_mask
 from gscodec_shac.codec.positions import decode_sorted_codes, morton_decode
 from gscodec_shac.errors import BitstreamError, CodecUnavailableError, GscodecError, MemoryLimitError
 from gscodec_shac.gaussians import GaussianCloud
-from gscodec_shac.limits import MEMORY_ENV, format_bytes, memory_budget
+from gscodec_shac.limits import MEMORY_ENV, default_workers, format_bytes, memory_budget
 
 
 class Decoder:
@@ -72,32 +72,36 @@ class Decoder:
             mask = unpack_mask(inflate(stream.chunk("grid_mask"), view.zlib_sizes["grid_mask"]), n, view.cells)
         stage = read_stage(stream, view) if view.sh is not None else None
 
-        tasks = [_ChunkTask(plan, stream.chunk(plan.name), codecs[plan.codec], shape) for plan in view.chunks]
+        # The occupied cells, computed once, when the first decoded picture needs them: a header
+        # declaring a huge grid over small pictures fails the codec's picture-size check first.
+        cells = _Once(lambda: occupied_cells(view.padding, shape, n, mask))
+        ycbcr = view.color == "ycbcr"
+        streamed = {name: _Dequantized(entry, n, cells, ycbcr) for name, entry in view.attributes.items()
+                    if entry.coding == "planes" and entry.quantizer is not None
+                    and all(p.part == "all" for p in view.chunks if p.attribute == name)}
+        tasks = [_ChunkTask(plan, stream.chunk(plan.name), codecs[plan.codec], shape, streamed.get(plan.attribute))
+                 for plan in view.chunks]
         # Largest chunks first (the SH grid dominates), so no worker is left with it at the end.
         biggest_first = sorted(range(len(tasks)), key=lambda i: -len(tasks[i].chunk.data))
         sets = {name: entry for name, entry in view.attributes.items() if entry.coding == "set"}
         with ThreadPoolExecutor(self.workers) as pool:
             futures = {i: pool.submit(tasks[i].decode) for i in biggest_first}
-            # Set-coded positions (LZMA and numpy) decode beside the grid planes.
-            set_futures = {name: pool.submit(_position_set, stream.chunk(e.chunks[0]), e, n)
+            # Set-coded positions (LZMA and numpy, then their inverse transform) decode beside the planes.
+            set_futures = {name: pool.submit(_position_set, stream.chunk(e.chunks[0]), e, n, ycbcr)
                            for name, e in sets.items()}
-            for _ in tqdm(as_completed(futures.values()), total=len(tasks), desc="decode", unit="chunk",
-                          disable=not self.progress, leave=False):
-                pass
+            for future in _progress(as_completed(futures.values()), len(tasks), self.progress):
+                future.result()
             planes = [futures[i].result() for i in range(len(tasks))]
-            set_values = {name: future.result() for name, future in set_futures.items()}
-        # After the planes: a header that declares a huge grid over small pictures fails in the
-        # codec's picture-size check before the grid's z-order is computed (seconds at 25M cells).
-        cells = occupied_cells(view.padding, shape, n, mask)
-        values = {
-            name: _assemble(entry, [(t, p) for t, p in zip(tasks, planes) if t.plan.attribute == name], shape, cells,
+            out = {name: future.result() for name, future in set_futures.items()}
+        values = {name: target.values() for name, target in streamed.items() if target.done is None}
+        out = {**out, **{name: target.done for name, target in streamed.items() if target.done is not None}}
+        values.update({
+            name: _assemble(entry, [(t, p) for t, p in zip(tasks, planes) if t.plan.attribute == name], shape, cells(),
                             self.workers)
-            for name, entry in view.attributes.items() if entry.coding == "planes"
-        }
-        values.update(set_values)
-        del planes, tasks, futures  # the coded planes are not needed past here (peak memory)
-        ycbcr = view.color == "ycbcr"
-        out = {name: ATTRIBUTES[name].inverse(values[name], ycbcr) for name in ATTRIBUTES if name in values}
+            for name, entry in view.attributes.items() if entry.coding == "planes" and name not in streamed
+        })
+        del planes, tasks, futures, streamed  # the coded planes are not needed past here (peak memory)
+        out.update({name: ATTRIBUTES[name].inverse(values[name], ycbcr) for name in ATTRIBUTES if name in values})
         sh_dc = out.get("sh_dc")
         if view.sh is None:
             sh_rest = np.zeros((n, sh_index.num_rest_coeffs(degree), 3), dtype=np.float32)
@@ -118,30 +122,90 @@ class Decoder:
         )
 
 
+class _Once:
+    """A value computed on first use, once, whichever thread asks first."""
+
+    def __init__(self, compute: Callable[[], np.ndarray]) -> None:
+        self._compute, self._value, self._lock = compute, None, threading.Lock()
+
+    def __call__(self) -> np.ndarray:
+        with self._lock:
+            if self._value is None:
+                self._value = self._compute()
+            return self._value
+
+
+class _Dequantized:
+    """An attribute's (C, N) float32 values, filled channel by channel as its pictures decode.
+
+    Per channel the same two lookups as :meth:`Quantizer.dequantize_cells` (the occupied
+    cells' codes, then their reconstructions), run by the thread that decoded the picture
+    while the codec goes on with the next one.
+    """
+
+    def __init__(self, entry: AttributeEntry, n: int, cells: _Once, ycbcr: bool) -> None:
+        self.tables = entry.quantizer.tables()  # type: ignore[union-attr]
+        self.cells = cells
+        self.out = np.empty((entry.channels, n), dtype=np.float32)
+        self.inverse = ATTRIBUTES[entry.name].inverse if entry.name in ATTRIBUTES else None
+        self.ycbcr, self.missing, self.done = ycbcr, entry.channels, None
+        self._lock = threading.Lock()
+
+    def put(self, channel: int, planes: np.ndarray) -> None:
+        cells = self.cells()
+        for k, plane in enumerate(planes):
+            np.take(self.tables[channel + k], np.take(plane.reshape(-1), cells), mode="clip", out=self.out[channel + k])
+        with self._lock:
+            self.missing -= len(planes)
+            last = self.missing == 0
+        if last and self.inverse is not None:  # a cloud attribute: its row-major values, in this thread
+            self.done = np.ascontiguousarray(self.inverse(self.out.T, self.ycbcr), dtype=np.float32)
+
+    def values(self) -> np.ndarray:
+        """(N, C) values (a column-major view)."""
+        return self.out.T
+
+
 @dataclass(frozen=True)
 class _ChunkTask:
-    """A chunk to decode into planes ``[start, stop)`` (or their high / low bytes) of an attribute."""
+    """A chunk to decode into planes ``[start, stop)`` (or their high / low bytes) of an attribute;
+    with ``target``, straight into that attribute's dequantised values (returns None)."""
 
     plan: ChunkPlan
     chunk: Chunk
     codec: GridCodec
     shape: tuple[int, int]
+    target: _Dequantized | None = None
 
-    def decode(self) -> np.ndarray:
-        plan = self.plan
+    def decode(self) -> np.ndarray | None:
+        plan, target = self.plan, self.target
+        shape = (plan.stop - plan.start, *self.shape)
         try:
-            return self.codec.decode(self.chunk.data, (plan.stop - plan.start, *self.shape), plan.bits)
+            if target is None:
+                return self.codec.decode(self.chunk.data, shape, plan.bits)
+            self.codec.decode_into(self.chunk.data, shape, plan.bits,
+                                   lambda first, planes: target.put(plan.start + first, planes))
+            return None
         except BitstreamError as exc:
             raise BitstreamError(f"corrupt .gsc file: chunk {self.chunk.name!r}: {exc}") from None
 
 
-def _position_set(chunk: Chunk, entry: AttributeEntry, n: int) -> np.ndarray:
-    """Set-coded positions (:mod:`.positions`) -> (N, 3) transformed values, in Morton (grid) order."""
+def _position_set(chunk: Chunk, entry: AttributeEntry, n: int, ycbcr: bool) -> np.ndarray:
+    """Set-coded positions (:mod:`.positions`) -> (N, 3) means, in Morton (grid) order."""
     try:
         codes = decode_sorted_codes(chunk.data, n, entry.bits)
     except BitstreamError as exc:
         raise BitstreamError(f"corrupt .gsc file: chunk {chunk.name!r}: {exc}") from None
-    return entry.quantizer.dequantize(morton_decode(codes))
+    return ATTRIBUTES[entry.name].inverse(entry.quantizer.dequantize(morton_decode(codes)), ycbcr)
+
+
+def _progress(futures: Iterable, total: int, show: bool) -> Iterable:
+    """``futures`` with a progress bar of ``total`` chunks when ``show``."""
+    if not show:
+        return futures
+    from tqdm.auto import tqdm
+
+    return tqdm(futures, total=total, desc="decode", unit="chunk", leave=False)
 
 
 def _assemble(entry: AttributeEntry, decoded: list, shape: tuple[int, int], cells: np.ndarray,

@@ -16,18 +16,19 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import heapq
+import itertools
 import json
-import os
+import threading
 import time
 import zlib
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, wait
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
-from tqdm.auto import tqdm
 
 import gscodec_shac
 from gscodec_shac.camera import Camera
@@ -51,25 +52,104 @@ from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode
 from gscodec_shac.codec.rate_points import AttributeSpec, RatePoint, load_rate_point
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.gaussians import GaussianCloud
+from gscodec_shac.limits import default_workers
 from gscodec_shac.row_blocks import GatheredRows
 from gscodec_shac.shac.base import ShStage, make_stage
 
 
-def default_workers() -> int:
-    """Grid-codec calls run in this many threads (x265, PNG and FFmpeg release the GIL)."""
-    return max(1, min(8, os.cpu_count() or 1))
-
-
 @dataclass
 class _Job:
-    """One chunk to code: its planes, codec and the chunk-table entry it will get."""
+    """One chunk being coded: the chunk-table entry it will get and its pieces of work running in
+    the scheduler (or its bytes, from the chunk cache)."""
 
     name: str
-    codec: GridCodec
-    planes: np.ndarray | None  # None once coded
-    bits: int
-    qp: int | None
-    meta: dict[str, Any] = field(default_factory=dict)
+    meta: dict[str, Any]
+    parts: list[Future] = field(default_factory=list)
+    join: Callable[[list[bytes]], bytes] | None = None
+    key: tuple | None = None
+    data: bytes | None = None
+
+    def result(self, scheduler: _Scheduler) -> bytes:
+        """The chunk's bytes; the caller's thread runs pending pieces meanwhile."""
+        if self.data is None:
+            scheduler.work_until(self.parts)
+            self.data = self.join([part.result() for part in self.parts])  # type: ignore[misc]
+            self.parts = []
+        return self.data
+
+
+class _Scheduler:
+    """Runs submitted work in ``workers`` threads, the costliest pending piece first.
+
+    ``workers - 1`` threads start with the first piece; the caller's thread is the last worker
+    once it waits for results (:meth:`work_until`), so at most ``workers`` pieces run at once
+    (as many x265 instances in memory as before) and the SH pieces, queued after the SH stage
+    is fitted, start as soon as they are queued. The encoder submits each chunk's pieces
+    (:meth:`GridCodec.encode_parts`) as soon as its planes exist, so the other attributes are
+    coded while the SH stage is fitted. A piece's output does not depend on when or in which
+    thread it runs, so neither do the bytes.
+    """
+
+    def __init__(self, workers: int) -> None:
+        self.threads = max(1, workers) - 1
+        self._pending: list[tuple[int, int, Callable[[], Any], Future]] = []
+        self._wake = threading.Condition()
+        self._started: list[threading.Thread] = []
+        self._closed = False
+        self._tickets = itertools.count()
+
+    def submit(self, cost: int, work: Callable[[], Any]) -> Future:
+        """Queue ``work`` (costlier first; equal costs in submission order)."""
+        future: Future = Future()
+        with self._wake:
+            heapq.heappush(self._pending, (-int(cost), next(self._tickets), work, future))
+            if len(self._started) < self.threads:
+                thread = threading.Thread(target=self._run, name="gscodec-encode", daemon=True)
+                self._started.append(thread)
+                thread.start()
+            self._wake.notify()
+        return future
+
+    def _next(self, block: bool) -> tuple | None:
+        with self._wake:
+            while block and not self._pending and not self._closed:
+                self._wake.wait()
+            return heapq.heappop(self._pending) if self._pending else None
+
+    @staticmethod
+    def _execute(item: tuple) -> None:
+        *_, work, future = item
+        if future.set_running_or_notify_cancel():
+            try:
+                future.set_result(work())
+            except BaseException as exc:  # re-raised in the caller by future.result()
+                future.set_exception(exc)
+
+    def _run(self) -> None:
+        while (item := self._next(block=True)) is not None:
+            self._execute(item)
+            del item
+
+    def work_until(self, futures: list[Future]) -> None:
+        """Run pending pieces in this thread until ``futures`` are done (waiting once none is pending)."""
+        while not all(future.done() for future in futures):
+            item = self._next(block=False)
+            if item is None:
+                wait(futures)
+                return
+            self._execute(item)
+            del item
+
+    def close(self) -> None:
+        """Drop the pieces not started, let the running ones finish and join the threads."""
+        with self._wake:
+            for *_, future in self._pending:
+                future.cancel()
+            self._pending = []
+            self._closed = True
+            self._wake.notify_all()
+        for thread in self._started:
+            thread.join()
 
 
 class Encoder:
@@ -159,10 +239,7 @@ class Encoder:
         # model's other arrays are freed now (the grid-order cloud has its own), the AC matrix after the stage
         ac = GatheredRows(cloud.ac_matrix(), self.order_) if sh_degree else None
         cloud = None
-        with self._timed("sh_stage"):
-            stage, features = self._sh_features(grid_cloud, ac)
-        ac = None
-
+        stage = self._make_stage(sh_degree)
         stream = Bitstream()
         n = grid_cloud.num_gaussians
         padding = grid.padding
@@ -172,22 +249,37 @@ class Encoder:
         cell_rows = grid.cell_rows(cells)
         ycbcr = rp.color == "ycbcr"
         attributes: dict[str, Any] = {}
-        with self._timed("quantize"):
-            for name, attr in ATTRIBUTES.items():
-                if name == "sh_dc" and stage is not None and stage.uses_dc:
-                    continue  # the DC travels inside the stage's features
-                values, rows = attr.column(grid_cloud), attr.rows(ycbcr)
-                if name == "positions" and rp.positions_as_set:
-                    attributes[name] = self._code_position_set(values, rows, rp.attributes[name], stream)
-                    continue
-                attributes[name] = self._code_values(name, attr.transform, values, rp.attributes[name], cell_rows,
-                                                     grid.shape, attr.groups, rows=rows)
-            n_features = 0 if features is None else features.shape[1]
-            if n_features:
+        features = None
+        n_features = 0
+        self._scheduler = _Scheduler(self.workers)
+        try:
+            # The other attributes' chunks are queued, and start coding, before the SH stage is fitted.
+            with self._timed("quantize"):
+                for name, attr in ATTRIBUTES.items():
+                    if name == "sh_dc" and stage is not None and stage.uses_dc:
+                        continue  # the DC travels inside the stage's features
+                    values, rows = attr.column(grid_cloud), attr.rows(ycbcr)
+                    if name == "positions" and rp.positions_as_set:
+                        attributes[name] = self._code_position_set(values, rows, rp.attributes[name], stream)
+                        continue
+                    attributes[name] = self._code_values(name, attr.transform, values, rp.attributes[name],
+                                                         cell_rows, grid.shape, attr.groups, rows=rows)
+                values = None
+            with self._timed("sh_stage"):
+                features = self._sh_features(stage, grid_cloud, ac)
+            ac = None
+            if features is not None and features.shape[1]:
                 attributes["sh"], n_features = self._code_sh(stage, features, cell_rows, grid.shape)
-            features = grid_cloud = values = None  # the coders hold the planes only
-        with self._timed("code"):
-            self._run_jobs(stream)
+            features = grid_cloud = None  # the coders hold the planes only
+            with self._timed("code"):
+                for job in _progress(self._jobs, self.progress):  # chunks enter the stream in queue order
+                    data = job.result(self._scheduler)
+                    if job.key is not None:
+                        self._chunk_cache[job.key] = data  # type: ignore[index]
+                    stream.add_chunk(job.name, data, **job.meta)
+        finally:
+            self._scheduler.close()
+            self._jobs = []
 
         sh_header = None
         if stage is not None:
@@ -259,16 +351,20 @@ class Encoder:
         self.timings_[step] = time.perf_counter() - tic
 
     # -------------------------------------------------------------- steps
-    def _sh_features(
-        self, cloud: GaussianCloud, ac: GatheredRows | None
-    ) -> tuple[ShStage | None, np.ndarray | None]:
-        """The SH stage and its features of the AC matrix ``ac`` in grid order (``cloud``: the grid-order
-        cloud, for the DC and positions)."""
-        if ac is None:
-            return None, None
-        # a caller's stage is copied: water-filling may drop features of the copy
+    def _make_stage(self, sh_degree: int) -> ShStage | None:
+        """The SH stage to fit (None for SH degree 0); a caller's stage is copied, as water-filling
+        may drop features of the copy."""
+        if sh_degree == 0:
+            return None
         stage = copy.deepcopy(self._stage_instance) or make_stage(self.rate_point.sh_stage, **self.rate_point.sh_params)
         stage.progress = self.progress
+        return stage
+
+    def _sh_features(self, stage: ShStage | None, cloud: GaussianCloud, ac: GatheredRows | None) -> np.ndarray | None:
+        """The stage's features of the AC matrix ``ac`` in grid order (``cloud``: the grid-order cloud,
+        for the DC and positions)."""
+        if stage is None or ac is None:
+            return None
         if not stage.reads_row_blocks or stage.uses_dc:
             ac = np.asarray(ac)
         if stage.uses_dc:
@@ -277,18 +373,24 @@ class Encoder:
         if fit and stage.uses_positions:
             stage.set_positions(cloud.means)
         if fit:
-            return stage, np.asarray(stage.fit_transform(ac))
+            return np.asarray(stage.fit_transform(ac))
         # a fitted caller's stage transforms the same cloud to the same features: once per placement
-        return stage, self._cached(f"features-{id(self._stage_instance)}", lambda: np.asarray(stage.transform(ac)))
+        return self._cached(f"features-{id(self._stage_instance)}", lambda: np.asarray(stage.transform(ac)))
 
     def _code_position_set(self, values: np.ndarray, rows: qz.RowTransform | None, spec: AttributeSpec,
                            stream: Bitstream) -> dict:
         """Positions (``rows(values)``) as a Morton-sorted set (:mod:`.positions`); the grid order is their Morton order."""
         quantizer = qz.Quantizer.fit(values, spec.bits, rows)
-        data = self._cached(f"positions-{spec.bits}",
-                            lambda: encode_sorted_codes(morton_encode(quantizer.quantize(values, rows))))
         stream.require("positions_set")
-        stream.add_chunk("positions", data, attribute="positions", encoding="morton_set", bits=spec.bits)
+        job = _Job("positions", {"attribute": "positions", "encoding": "morton_set", "bits": spec.bits})
+        key = ("__work__", f"positions-{spec.bits}", self._work_key)
+        if self._work_key is not None and key in self._chunk_cache:  # type: ignore[operator]
+            job.data = self._chunk_cache[key]  # type: ignore[index]
+        else:
+            codes = morton_encode(quantizer.quantize(values, rows))
+            job.parts, job.join = [self._scheduler.submit(3 * len(codes), lambda: encode_sorted_codes(codes))], _first
+            job.key = key if self._work_key is not None else None
+        self._jobs.append(job)
         return {"chunks": ["positions"], "channels": 3, "coding": "set", "transform": ATTRIBUTES["positions"].transform,
                 "quantizer": quantizer.to_json()}
 
@@ -368,23 +470,14 @@ class Encoder:
         codec, index = self._codec(spec.codec, spec.options)
         meta = {"attribute": attribute, "channels": list(channels), "part": part,
                 "shape": list(planes.shape), "bits": bits, "qp": qp, "codec": index}
-        self._jobs.append(_Job(chunk, codec, planes, bits, qp, meta))
-
-    def _run_jobs(self, stream: Bitstream) -> None:
-        """Code the queued chunks in threads (or take them from the chunk cache); chunks enter the
-        stream in queue order."""
-        cache = self._chunk_cache
-        keys = [_cache_key(job) if cache is not None else None for job in self._jobs]
-        with ThreadPoolExecutor(self.workers) as pool:
-            futures = [None if key in (cache or {}) else pool.submit(_code_job, job)
-                       for job, key in zip(self._jobs, keys)]
-            for job, key, future in tqdm(list(zip(self._jobs, keys, futures)), desc="encode", unit="chunk",
-                                         disable=not self.progress, leave=False):
-                data = cache[key] if future is None else future.result()
-                if cache is not None:
-                    cache[key] = data
-                stream.add_chunk(job.name, data, **job.meta)
-        self._jobs = []
+        job = _Job(chunk, meta)
+        if self._chunk_cache is not None:
+            job.key = _cache_key(chunk, codec, planes, bits, qp)
+            job.data = self._chunk_cache.get(job.key)
+        if job.data is None:
+            parts, job.join = codec.encode_parts(planes, bits, qp)
+            job.parts = [self._scheduler.submit(cost, work) for cost, work in parts]
+        self._jobs.append(job)
 
     def _codec(self, name: str, options: dict) -> tuple[GridCodec, int]:
         """A codec instance and its index in the header's codec table."""
@@ -394,13 +487,6 @@ class Encoder:
         return self._codecs[key]
 
 
-def _code_job(job: _Job) -> bytes:
-    """Code one chunk; its planes are freed as soon as it is coded (memory: the coders in flight)."""
-    data = job.codec.encode(job.planes, job.bits, job.qp)
-    job.planes = None
-    return data
-
-
 def _work_key(rp: RatePoint) -> str:
     """What decides the grid placement (hence the cloud in grid order): pruning and sorting settings."""
     positions = rp.attributes["positions"]
@@ -408,7 +494,20 @@ def _work_key(rp: RatePoint) -> str:
                        rp.sort.to_json(), rp.sort.multiple], sort_keys=True, default=str)
 
 
-def _cache_key(job: _Job) -> tuple:
+def _cache_key(name: str, codec: GridCodec, planes: np.ndarray, bits: int, qp: int | None) -> tuple:
     """What decides a chunk's bytes: its name, codec and settings, and its planes."""
-    digest = hashlib.sha1(np.ascontiguousarray(job.planes).view(np.uint8)).hexdigest()
-    return (job.name, json.dumps(job.codec.describe(), sort_keys=True), job.bits, job.qp, job.planes.shape, digest)
+    digest = hashlib.sha1(np.ascontiguousarray(planes).view(np.uint8)).hexdigest()
+    return (name, json.dumps(codec.describe(), sort_keys=True), bits, qp, planes.shape, digest)
+
+
+def _first(outputs: list[bytes]) -> bytes:
+    return outputs[0]
+
+
+def _progress(jobs: list[_Job], show: bool) -> Iterator[_Job]:
+    """The jobs, with a progress bar when ``show``."""
+    if not show:
+        return iter(jobs)
+    from tqdm.auto import tqdm
+
+    return iter(tqdm(jobs, desc="encode", unit="chunk", leave=False))

@@ -21,14 +21,16 @@ computes a :class:`GridOrder` once and ``Encoder.encode(cloud, grid=...)`` reuse
 from __future__ import annotations
 
 import zlib
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from gscodec_shac.codec import quantize as qz
-from gscodec_shac.codec.rate_points import SortSpec
 from gscodec_shac.errors import BitstreamError, ValidationError
 from gscodec_shac.gaussians import GaussianCloud
+
+if TYPE_CHECKING:  # the rate points' YAML loader is not needed to place or decode a grid
+    from gscodec_shac.codec.rate_points import SortSpec
 
 
 class GridOrder(NamedTuple):

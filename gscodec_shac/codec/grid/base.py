@@ -12,12 +12,20 @@ from __future__ import annotations
 
 import struct
 from abc import ABC, abstractmethod
-from typing import Any, ClassVar
+from typing import Any, Callable, ClassVar
 
 import numpy as np
 
 from gscodec_shac.errors import BitstreamError, CodecUnavailableError, ValidationError
 from gscodec_shac.registry import Registry
+
+
+#: Independent pieces of an encode, ``(cost, work)`` each, and the function joining their outputs
+#: (in order) into the codec's bytes: :meth:`GridCodec.encode_parts`.
+EncodeParts = tuple[list[tuple[int, Callable[[], bytes]]], Callable[[list[bytes]], bytes]]
+#: Receives decoded planes as they come: ``sink(first_channel, planes)`` with (k, H, W) uint16 planes
+#: of channels ``first_channel .. first_channel + k - 1`` (its own array; called from codec threads).
+PlaneSink = Callable[[int, np.ndarray], None]
 
 
 class GridCodec(ABC):
@@ -46,6 +54,17 @@ class GridCodec(ABC):
     @abstractmethod
     def decode(self, data: bytes, shape: tuple[int, int, int], bit_depth: int) -> np.ndarray:
         """Bytes -> (C, H, W) uint16 planes of exactly ``shape``; raise BitstreamError otherwise."""
+
+    def encode_parts(self, planes: np.ndarray, bit_depth: int, qp: int | None) -> EncodeParts:
+        """:meth:`encode` as independent pieces of work, each with a cost estimate (samples coded),
+        so a caller may run them in threads, costliest first; joining their outputs gives the
+        bytes of :meth:`encode`. By default one piece; ``hevc`` makes one per stream."""
+        return [(int(np.size(planes)), lambda: self.encode(planes, bit_depth, qp))], lambda outputs: outputs[0]
+
+    def decode_into(self, data: bytes, shape: tuple[int, int, int], bit_depth: int, sink: PlaneSink) -> None:
+        """:meth:`decode`, the planes handed to ``sink`` (a codec that decodes picture by picture,
+        such as ``hevc``, calls it per picture, so the caller's work overlaps the decoding)."""
+        sink(0, self.decode(data, shape, bit_depth))
 
     # -------------------------------------------------------------- helpers
     def describe(self) -> dict[str, Any]:

@@ -35,11 +35,12 @@ import functools
 import os
 import re
 from concurrent.futures import ThreadPoolExecutor
+from typing import Iterator
 
 import av
 import numpy as np
 
-from gscodec_shac.codec.grid.base import GridCodec, join_chunks, register_codec, split_chunks
+from gscodec_shac.codec.grid.base import EncodeParts, GridCodec, PlaneSink, join_chunks, register_codec, split_chunks
 from gscodec_shac.errors import BitstreamError, CodecUnavailableError, ValidationError
 
 LAYOUTS = ("gray", "yuv444", "frames")
@@ -104,22 +105,28 @@ class HevcCodec(GridCodec):
 
     # ------------------------------------------------------------------ encode
     def encode(self, planes: np.ndarray, bit_depth: int, qp: int | None) -> bytes:
+        parts, join = self.encode_parts(planes, bit_depth, qp)
+        return join([work() for _, work in parts])
+
+    def encode_parts(self, planes: np.ndarray, bit_depth: int, qp: int | None) -> EncodeParts:
+        """One piece per stream of the layout (x265 runs each independently; cost: its samples)."""
         planes = self._check_planes(planes, bit_depth, qp)
         check_qp(self.name, qp)
         depth = coding_depth(self.name, bit_depth, self.depth)
         shift = 0 if qp is None else depth - bit_depth
         grid = pad_to_codable(planes << shift if shift else planes, self.layout)
-        streams = []
+        parts = []
         for first, n_frames, chroma in stream_plan(self.layout, len(grid)):
             if chroma:
-                streams.append(self._encode_stream([grid[first : first + 3]], _YUV444_FMT[depth], qp, ""))
-                continue
-            gop = ""
-            if n_frames > 1:  # the frames layout: one I frame, then inter frames
-                gop = f":keyint={n_frames}:min-keyint={n_frames}:scenecut=0"
-                gop += f":bframes={self.bframes}" if self.bframes is not None else ""
-            streams.append(self._encode_stream(list(grid[first : first + n_frames]), _GRAY_FMT[depth], qp, gop))
-        return bytes([LAYOUTS.index(self.layout), shift]) + join_chunks(streams)
+                frames, pix_fmt, gop = [grid[first : first + 3]], _YUV444_FMT[depth], ""
+            else:
+                frames, pix_fmt, gop = list(grid[first : first + n_frames]), _GRAY_FMT[depth], ""
+                if n_frames > 1:  # the frames layout: one I frame, then inter frames
+                    gop = f":keyint={n_frames}:min-keyint={n_frames}:scenecut=0"
+                    gop += f":bframes={self.bframes}" if self.bframes is not None else ""
+            parts.append((sum(f.size for f in frames), functools.partial(self._encode_stream, frames, pix_fmt, qp, gop)))
+        head = bytes([LAYOUTS.index(self.layout), shift])
+        return parts, lambda streams: head + join_chunks(streams)
 
     def _encode_stream(self, frames: list[np.ndarray], pix_fmt: str, qp: int | None, extra: str) -> bytes:
         """Encode frames ((H, W) or (3, H, W) arrays) into one Annex-B stream."""
@@ -150,36 +157,49 @@ class HevcCodec(GridCodec):
 
     # ------------------------------------------------------------------ decode
     def decode(self, data: bytes, shape: tuple[int, int, int], bit_depth: int) -> np.ndarray:
+        out = np.empty(self._check_shape(shape, bit_depth), dtype=np.uint16)
+
+        def put(first: int, planes: np.ndarray) -> None:
+            out[first : first + len(planes)] = planes
+
+        self.decode_into(data, shape, bit_depth, put)
+        return out
+
+    def decode_into(self, data: bytes, shape: tuple[int, int, int], bit_depth: int, sink: PlaneSink) -> None:
+        """Hand every decoded picture's channels to ``sink`` as FFmpeg outputs it (no frame is held)."""
         channels, height, width = self._check_shape(shape, bit_depth)
         if len(data) < 2 or data[0] >= len(LAYOUTS):
             raise BitstreamError("hevc stream is corrupt (unknown layout byte)")
         layout, shift = LAYOUTS[data[0]], data[1]
         coded_h, coded_w = codable_size(height, width, layout)
         plan = stream_plan(layout, channels)
-        out = np.empty((channels, coded_h, coded_w), dtype=np.uint16)
-        depths = set()
         streams = split_chunks(data[2:], len(plan), self.name)
-        for index, (stream, (first, n_frames, chroma)) in enumerate(zip(streams, plan)):
-            depths.add(check_sps(stream, coded_w, coded_h, chroma, index))
+        depths = {check_sps(stream, coded_w, coded_h, chroma, i) for i, (stream, (_, _, chroma)) in enumerate(zip(streams, plan))}
+        depth = check_depth(depths, shift, bit_depth)
 
-        def decode_into_out(index: int) -> None:
+        def decode_stream(index: int) -> None:
             first, n_frames, chroma = plan[index]
-            frames = _decode_stream(streams[index], index, frame_threads if plan[index][1] > 1 else 1)
-            if len(frames) != n_frames:
-                raise BitstreamError(f"hevc stream {index} holds {len(frames)} frames, expected {n_frames}")
             step = 3 if chroma else 1
-            for k, frame in enumerate(frames):
-                start = first + k * step
-                out[start : start + step] = _planes_from_frame(frame, index, coded_h, coded_w, chroma)
+            count = 0
+            for frame in _decoded_frames(streams[index], index, frame_threads if n_frames > 1 else 1):
+                if count == n_frames:
+                    raise BitstreamError(f"hevc stream {index} holds more than the {n_frames} frames expected")
+                planes = _planes_from_frame(frame, index, coded_h, coded_w, chroma)[:, :height, :width]
+                sink(first + count * step, restore_samples(planes, depth, shift, bit_depth))
+                count += 1
+            if count != n_frames:
+                raise BitstreamError(f"hevc stream {index} holds {count} frames, expected {n_frames}")
 
         # FFmpeg decodes without the GIL: the streams of a multi-channel grid go to
         # parallel threads (one 1024x1024 plane is ~30 ms; 38 of them in series were
-        # the critical path of a 1M-Gaussian decode). Each thread writes its own planes.
+        # the critical path of a 1M-Gaussian decode); a multi-frame stream decodes with
+        # FFmpeg's frame threads. The sink gets disjoint channels from each thread.
         frame_threads = os.cpu_count() or 1
+        if len(streams) == 1:
+            decode_stream(0)
+            return
         with ThreadPoolExecutor(min(len(streams), os.cpu_count() or 1)) as pool:
-            list(pool.map(decode_into_out, range(len(streams))))
-        planes = restore_samples(out[:, :height, :width], depths, shift, bit_depth)
-        return self._check_decoded(self.name, planes, shape)
+            list(pool.map(decode_stream, range(len(streams))))
 
 
 # ------------------------------------------------- helpers (shared with ``hm``)
@@ -201,16 +221,21 @@ def coding_depth(name: str, bit_depth: int, depth: int | None) -> int:
     return chosen
 
 
-def restore_samples(planes: np.ndarray, depths: set[int], shift: int, bit_depth: int) -> np.ndarray:
-    """Undo the encoder's left shift (rounding, clipping) and check the value range."""
-    depth = depths.pop() if len(depths) == 1 else None
+def check_depth(depths: set[int], shift: int, bit_depth: int) -> int:
+    """The one coding depth of a chunk's streams, checked against its shift and the header's bit depth."""
+    depth = next(iter(depths)) if len(depths) == 1 else None
     if depth is None or depth < bit_depth or shift not in (0, depth - bit_depth):
         raise BitstreamError(f"hevc stream at {depth} bits with shift {shift} cannot hold {bit_depth}-bit samples")
+    return depth
+
+
+def restore_samples(planes: np.ndarray, depth: int, shift: int, bit_depth: int) -> np.ndarray:
+    """Undo the encoder's left shift (rounding, clipping) and check the value range: a new uint16 array."""
     if shift:
-        planes = np.minimum((planes.astype(np.uint32) + (1 << (shift - 1))) >> shift, 2**bit_depth - 1)
-    elif int(planes.max()) >= 2**bit_depth:  # no shift although depth > bit_depth: a lossless stream
+        return np.minimum((planes.astype(np.uint32) + (1 << (shift - 1))) >> shift, 2**bit_depth - 1).astype(np.uint16)
+    if depth > bit_depth and int(planes.max()) >= 2**bit_depth:  # no shift although depth > bit_depth: lossless
         raise BitstreamError(f"hevc stream holds values above {bit_depth} bits")
-    return np.ascontiguousarray(planes, dtype=np.uint16)
+    return np.array(planes, dtype=np.uint16, order="C")
 
 
 def stream_plan(layout: str, channels: int) -> list[tuple[int, int, int]]:
@@ -261,7 +286,7 @@ def _frame_from_planes(planes: np.ndarray, pix_fmt: str) -> av.VideoFrame:
 
 
 def _planes_from_frame(frame: av.VideoFrame, index: int, height: int, width: int, chroma: int) -> np.ndarray:
-    """(1 or 3, H, W) uint16 samples of a decoded frame, checking its format and size."""
+    """(1 or 3, H, W) views of a decoded frame's samples (no copy), checking its format and size."""
     expected = _YUV444_FMT if chroma else _GRAY_FMT
     if frame.format.name not in expected.values() or (frame.height, frame.width) != (height, width):
         raise BitstreamError(
@@ -269,22 +294,22 @@ def _planes_from_frame(frame: av.VideoFrame, index: int, height: int, width: int
             f"expected {width}x{height}"
         )
     itemsize = 1 if frame.format.name in ("gray", "yuv444p") else 2
-    return np.stack([_plane_view(plane, itemsize) for plane in frame.planes]).astype(np.uint16)
+    views = [_plane_view(plane, itemsize) for plane in frame.planes]
+    return views[0][None] if len(views) == 1 else np.stack(views)
 
 
-def _decode_stream(stream: bytes, index: int, threads: int = 1) -> list[av.VideoFrame]:
-    """All frames of one Annex-B stream, in output order (``threads`` > 1: frame-threaded)."""
+def _decoded_frames(stream: bytes, index: int, threads: int = 1) -> Iterator[av.VideoFrame]:
+    """The frames of one Annex-B stream, in output order, each as soon as FFmpeg gives it
+    (``threads`` > 1: FFmpeg's frame threads, the same pictures on several cores)."""
     try:
         ctx = av.CodecContext.create("hevc", "r")
-        if threads > 1:  # FFmpeg's frame threads: a multi-frame stream decodes on several cores (same pictures)
+        if threads > 1:
             ctx.thread_type, ctx.thread_count = "FRAME", threads
-        frames = []
         for packet in ctx.parse(stream) + ctx.parse(None):
-            frames += ctx.decode(packet)
-        frames += ctx.decode(None)
+            yield from ctx.decode(packet)
+        yield from ctx.decode(None)
     except (av.FFmpegError, ValueError) as exc:
         raise BitstreamError(f"hevc stream {index} is corrupt: {exc}") from None
-    return frames
 
 
 @functools.lru_cache(maxsize=1)

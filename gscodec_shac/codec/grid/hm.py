@@ -30,6 +30,7 @@ import numpy as np
 from gscodec_shac.codec.grid.base import GridCodec, join_chunks, register_codec, split_chunks
 from gscodec_shac.codec.grid.hevc import (
     LAYOUTS,
+    check_depth,
     check_qp,
     check_sps,
     codable_size,
@@ -166,7 +167,7 @@ class HmCodec(GridCodec):
                 self._run([str(decoder), "-b", str(bitstream), "-o", str(recon), "-d", str(depth)], decoding=True)
                 count = 3 if chroma else 1
                 out[first : first + count] = _read_yuv(recon, count, coded_h, coded_w, depth, index)
-        planes = restore_samples(out[:, :height, :width], depths, shift, bit_depth)
+        planes = restore_samples(out[:, :height, :width], check_depth(depths, shift, bit_depth), shift, bit_depth)
         return self._check_decoded(self.name, planes, shape)
 
     def _run(self, command: list[str], decoding: bool = False) -> None:
