@@ -239,6 +239,8 @@ class Encoder:
         # model's other arrays are freed now (the grid-order cloud has its own), the AC matrix after the stage
         ac = GatheredRows(cloud.ac_matrix(), self.order_) if sh_degree else None
         cloud = None
+        if release_input:
+            self._measured = None  # the importance measurement holds the model too
         stage = self._make_stage(sh_degree)
         stream = Bitstream()
         n = grid_cloud.num_gaussians
