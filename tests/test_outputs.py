@@ -192,7 +192,7 @@ def test_an_input_that_is_a_directory_is_named_as_such(tmp_path):
 def _slow_encode_args(tmp_path: Path) -> list[str]:
     ply = tmp_path / "big.ply"
     if not ply.exists():
-        write_ply(ply, make_synthetic_scene(40_000, seed=2, n_cameras=1).cloud)
+        write_ply(ply, make_synthetic_scene(80_000, seed=2, n_cameras=1).cloud)  # encodes for several seconds
     return ["encode", str(ply), str(tmp_path / "out.gsc"), "-r", "paper_table3:rp2", "--quiet", "--force"]
 
 
@@ -215,7 +215,11 @@ def test_an_interrupted_encode_leaves_the_old_file_and_no_temporary(tmp_path, si
         # -signum: the signal came before Python had installed our handlers (a loaded machine
         # can take longer than the delay to start); the file guarantees hold all the same.
         assert process.returncode in (status, -signum) and "Traceback" not in stderr, stderr
-        assert out.read_bytes() == b"old" and hidden(tmp_path) == []
+        assert hidden(tmp_path) == []
+        data = out.read_bytes()
+        if data != b"old":  # the signal came after the new file replaced the old one (one rename): it is whole
+            assert Decoder().decode(data).num_gaussians > 0
+            out.write_bytes(b"old")
         if signum != signal.SIGKILL and process.returncode == status:
             assert stderr.strip() == ("interrupted" if signum == signal.SIGINT else "terminated")
 
