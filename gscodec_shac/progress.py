@@ -21,7 +21,7 @@ import math
 import os
 import sys
 import time
-from typing import Callable, Iterator, TextIO
+from typing import Any, Callable, Iterable, Iterator, TextIO
 
 INTERVAL_ENV = "GSCODEC_PROGRESS_INTERVAL"
 #: Commands that write their own log lines when stderr is not a terminal (JSON every 100 steps).
@@ -127,3 +127,13 @@ def plain_progress_lines(command: str | None = None) -> Iterator[None]:
     finally:
         if sys.stderr is not original:
             sys.stderr = original
+
+
+def optional_bar(items: Iterable, show: bool, **options: Any) -> Iterable:
+    """``items`` behind a tqdm bar (``options``: tqdm's) when ``show``, else as they are; tqdm is
+    imported only when a bar is shown, so a quiet encode or decode does not import it."""
+    if not show:
+        return items
+    from tqdm.auto import tqdm
+
+    return tqdm(items, **options)

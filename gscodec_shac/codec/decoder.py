@@ -16,7 +16,7 @@ import threading
 import zlib
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
-from typing import Callable, Iterable
+from typing import Callable
 
 import numpy as np
 
@@ -31,6 +31,7 @@ from gscodec_shac.codec.positions import decode_sorted_codes, morton_decode
 from gscodec_shac.errors import BitstreamError, CodecUnavailableError, GscodecError, MemoryLimitError
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.limits import MEMORY_ENV, default_workers, format_bytes, memory_budget
+from gscodec_shac.progress import optional_bar
 
 
 class Decoder:
@@ -89,7 +90,8 @@ class Decoder:
             # Set-coded positions (LZMA and numpy, then their inverse transform) decode beside the planes.
             set_futures = {name: pool.submit(_position_set, stream.chunk(e.chunks[0]), e, n, ycbcr)
                            for name, e in sets.items()}
-            for future in _progress(as_completed(futures.values()), len(tasks), self.progress):
+            for future in optional_bar(as_completed(futures.values()), self.progress, total=len(tasks), desc="decode",
+                                       unit="chunk", leave=False):
                 future.result()
             planes = [futures[i].result() for i in range(len(tasks))]
             out = {name: future.result() for name, future in set_futures.items()}
@@ -197,15 +199,6 @@ def _position_set(chunk: Chunk, entry: AttributeEntry, n: int, ycbcr: bool) -> n
     except BitstreamError as exc:
         raise BitstreamError(f"corrupt .gsc file: chunk {chunk.name!r}: {exc}") from None
     return ATTRIBUTES[entry.name].inverse(entry.quantizer.dequantize(morton_decode(codes)), ycbcr)
-
-
-def _progress(futures: Iterable, total: int, show: bool) -> Iterable:
-    """``futures`` with a progress bar of ``total`` chunks when ``show``."""
-    if not show:
-        return futures
-    from tqdm.auto import tqdm
-
-    return tqdm(futures, total=total, desc="decode", unit="chunk", leave=False)
 
 
 def _assemble(entry: AttributeEntry, decoded: list, shape: tuple[int, int], cells: np.ndarray,

@@ -53,6 +53,7 @@ from gscodec_shac.codec.rate_points import AttributeSpec, RatePoint, load_rate_p
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.limits import default_workers
+from gscodec_shac.progress import optional_bar
 from gscodec_shac.row_blocks import GatheredRows
 from gscodec_shac.shac.base import ShStage, make_stage
 
@@ -274,7 +275,7 @@ class Encoder:
                 attributes["sh"], n_features = self._code_sh(stage, features, cell_rows, grid.shape)
             features = grid_cloud = None  # the coders hold the planes only
             with self._timed("code"):
-                for job in _progress(self._jobs, self.progress):  # chunks enter the stream in queue order
+                for job in optional_bar(self._jobs, self.progress, desc="encode", unit="chunk", leave=False):  # in queue order
                     data = job.result(self._scheduler)
                     if job.key is not None:
                         self._chunk_cache[job.key] = data  # type: ignore[index]
@@ -504,12 +505,3 @@ def _cache_key(name: str, codec: GridCodec, planes: np.ndarray, bits: int, qp: i
 
 def _first(outputs: list[bytes]) -> bytes:
     return outputs[0]
-
-
-def _progress(jobs: list[_Job], show: bool) -> Iterator[_Job]:
-    """The jobs, with a progress bar when ``show``."""
-    if not show:
-        return iter(jobs)
-    from tqdm.auto import tqdm
-
-    return iter(tqdm(jobs, desc="encode", unit="chunk", leave=False))
