@@ -459,6 +459,17 @@ def orbit_views(
     return cameras
 
 
+def spread_views(cameras: Iterable[Camera], count: int, max_width: int | None = None) -> list[Camera]:
+    """At most ``count`` of ``cameras``, evenly spread in name order; with ``max_width``, each one
+    wider than that resized to it (aspect kept)."""
+    ordered = sorted(cameras, key=lambda c: c.name)
+    views = [ordered[i] for i in np.linspace(0, len(ordered) - 1, min(count, len(ordered))).round().astype(int)]
+    if max_width is None:
+        return views
+    return [v if v.width <= max_width else v.resized(max_width, max(1, round(v.height * max_width / v.width)))
+            for v in views]
+
+
 def test_split(cameras: Iterable[Camera], every: int = 8) -> tuple[list[Camera], list[Camera]]:
     """``(train, test)``: test is every ``every``-th camera (i % every == 0) in sorted name order.
 

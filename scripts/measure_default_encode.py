@@ -30,14 +30,11 @@ def _psnr_views(reference: list[np.ndarray], images: list[np.ndarray]) -> float:
 
 
 def _views(cloud, cameras: str | None, width: int, count: int) -> list:
-    from gscodec_shac.camera import orbit_views
+    from gscodec_shac.camera import orbit_views, spread_views
     from gscodec_shac.io.cameras import load_cameras
 
     if cameras:
-        views = sorted(load_cameras(cameras), key=lambda c: c.name)
-        picked = np.linspace(0, len(views) - 1, min(count, len(views))).round().astype(int)
-        return [views[i].resized(width, max(1, round(width * views[i].height / views[i].width)))
-                if views[i].width > width else views[i] for i in picked]
+        return spread_views(load_cameras(cameras), count, width)
     return orbit_views(cloud.means, count, width, elevations=(20.0,))
 
 

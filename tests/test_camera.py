@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from gscodec_shac.camera import Camera, camera_on_sphere, orbit_basis, orbit_cameras, test_split
+from gscodec_shac.camera import Camera, camera_on_sphere, orbit_basis, orbit_cameras, spread_views, test_split
 from gscodec_shac.errors import CameraFormatError, GscodecError, ValidationError
 
 
@@ -164,3 +164,15 @@ def test_orbit_views_see_a_real_scene_from_outside():
         assert inside.mean() > 0.95, (camera.name, inside.mean())
         covered = (renderer.render(camera, background=(0.0, 0.0, 0.0)).image.max(axis=2) > 0.02).mean()
         assert 0.2 < covered < 0.85, (camera.name, covered)
+
+
+def test_spread_views_picks_evenly_in_name_order_and_caps_the_width():
+    cameras = orbit_cameras(np.zeros(3), 3.0, 9, 400, 300, 45.0)
+    picked = spread_views(reversed(cameras), 3)
+    names = sorted(c.name for c in cameras)
+    assert [c.name for c in picked] == [names[0], names[4], names[8]]
+    assert all(c.width == 400 for c in picked)
+    small = spread_views(cameras, 100, max_width=200)
+    assert len(small) == 9 and all((c.width, c.height) == (200, 150) for c in small)
+    assert spread_views(cameras, 2, max_width=1000)[0].width == 400  # narrower ones are kept as they are
+    assert spread_views([], 4) == []

@@ -24,7 +24,7 @@ from typing import Sequence
 
 import numpy as np
 
-from gscodec_shac.camera import Camera, orbit_views
+from gscodec_shac.camera import Camera, orbit_views, spread_views
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.gaussians import GaussianCloud
 
@@ -41,13 +41,8 @@ def importance_views(cloud: GaussianCloud, cameras: Sequence[Camera] | None = No
     """The views importance is measured from: ``cameras`` (at most :data:`MAX_VIEWS`, spread evenly
     in name order, at most ``width`` pixels wide) or :data:`ORBIT_VIEWS` orbit views around ``cloud``."""
     if cameras:
-        ordered = sorted(cameras, key=lambda c: c.name)
-        picks = np.linspace(0, len(ordered) - 1, min(MAX_VIEWS, len(ordered))).round().astype(int)
-        views = [ordered[i] for i in picks]
-    else:
-        views = orbit_views(cloud.means, ORBIT_VIEWS, min(width, ORBIT_WIDTH), up=up,
-                            opacities=cloud.activated_opacities())
-    return [v if v.width <= width else v.resized(width, max(1, round(v.height * width / v.width))) for v in views]
+        return spread_views(cameras, MAX_VIEWS, width)
+    return orbit_views(cloud.means, ORBIT_VIEWS, min(width, ORBIT_WIDTH), up=up, opacities=cloud.activated_opacities())
 
 
 def gaussian_importance(cloud: GaussianCloud, views: Sequence[Camera]) -> np.ndarray:

@@ -53,7 +53,7 @@ from typing import Any, Sequence
 import numpy as np
 from tqdm.auto import tqdm
 
-from gscodec_shac.camera import Camera, orbit_views
+from gscodec_shac.camera import Camera, orbit_views, spread_views
 from gscodec_shac.codec import quantize as qz
 from gscodec_shac.codec.allocation import waterfill_qps
 from gscodec_shac.codec.attributes import ATTRIBUTES
@@ -729,15 +729,7 @@ def _psnr(mse: float) -> float:
 
 def _calibration_views(views: list[Camera]) -> list[Camera]:
     """At most :data:`CALIBRATION_VIEWS` views, evenly spread, at most :data:`CALIBRATION_WIDTH` wide."""
-    ordered = sorted(views, key=lambda c: c.name)
-    picked = [ordered[i] for i in np.linspace(0, len(ordered) - 1, min(CALIBRATION_VIEWS, len(ordered))).round().astype(int)]
-    out = []
-    for view in picked:
-        if view.width > CALIBRATION_WIDTH:
-            height = max(1, round(view.height * CALIBRATION_WIDTH / view.width))
-            view = view.resized(CALIBRATION_WIDTH, height)
-        out.append(view)
-    return out
+    return spread_views(views, CALIBRATION_VIEWS, CALIBRATION_WIDTH)
 
 
 def _probe_rows(cloud: GaussianCloud) -> np.ndarray:

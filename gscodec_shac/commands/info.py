@@ -93,8 +93,9 @@ def _compare(args: argparse.Namespace) -> int:
     if args.cameras:
         from gscodec_shac.io.cameras import load_cameras
 
-        views = sorted(load_cameras(args.cameras), key=lambda c: c.name)
-        views = [views[i] for i in np.linspace(0, len(views) - 1, min(args.views, len(views))).round().astype(int)]
+        from gscodec_shac.camera import spread_views
+
+        views = spread_views(load_cameras(args.cameras), args.views)
         views = resize_cameras(views, None, min(args.width, min(v.width for v in views)))
         source = f"{len(views)} views of {args.cameras}"
     else:
