@@ -338,11 +338,15 @@ class Encoder:
                                   f"({cloud.num_gaussians:,})")
         return most_important(np.asarray(importance, dtype=np.float64), kept, keep_count(cloud.num_gaussians, share))
 
+    def _work_cache_key(self, what: str) -> tuple | None:
+        """The shared cache's key of ``what`` under this encode's pruning and sorting settings (None: no cache)."""
+        return None if self._work_key is None else ("__work__", what, self._work_key)
+
     def _cached(self, what: str, compute: Any) -> Any:
         """``compute()``, kept in the shared cache under this encode's pruning and sorting settings."""
-        if self._work_key is None:
+        key = self._work_cache_key(what)
+        if key is None:
             return compute()
-        key = ("__work__", what, self._work_key)
         if key not in self._chunk_cache:  # type: ignore[operator]
             self._chunk_cache[key] = compute()  # type: ignore[index]
         return self._chunk_cache[key]  # type: ignore[index]
@@ -386,13 +390,12 @@ class Encoder:
         quantizer = qz.Quantizer.fit(values, spec.bits, rows)
         stream.require("positions_set")
         job = _Job("positions", {"attribute": "positions", "encoding": "morton_set", "bits": spec.bits})
-        key = ("__work__", f"positions-{spec.bits}", self._work_key)
-        if self._work_key is not None and key in self._chunk_cache:  # type: ignore[operator]
-            job.data = self._chunk_cache[key]  # type: ignore[index]
+        job.key = self._work_cache_key(f"positions-{spec.bits}")
+        if job.key is not None and job.key in self._chunk_cache:  # type: ignore[operator]
+            job.data = self._chunk_cache[job.key]  # type: ignore[index]
         else:
             codes = morton_encode(quantizer.quantize(values, rows))
             job.parts, job.join = [self._scheduler.submit(3 * len(codes), lambda: encode_sorted_codes(codes))], _first
-            job.key = key if self._work_key is not None else None
         self._jobs.append(job)
         return {"chunks": ["positions"], "channels": 3, "coding": "set", "transform": ATTRIBUTES["positions"].transform,
                 "quantizer": quantizer.to_json()}
