@@ -59,12 +59,13 @@ from gscodec_shac.codec.allocation import waterfill_qps
 from gscodec_shac.codec.attributes import ATTRIBUTES
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.decoder import Decoder
-from gscodec_shac.codec.encoder import Encoder, default_workers
+from gscodec_shac.codec.encoder import Encoder
 from gscodec_shac.codec.importance import gaussian_importance, importance_views, keep_count, most_important
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode, set_order
 from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
 from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac import limits
+from gscodec_shac.limits import default_workers
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.shac.base import ShStage, make_stage
 
@@ -275,7 +276,13 @@ class RateController:
             renderer = Renderer(cloud)
             self._references = [renderer.render(view, background=self.background).image for view in self.views]
             bar.update(1)
-            rates, errors, overhead = self._probe(bar)
+            sh_values = self._sh_values()  # the whole cloud's SH features, once: the probe's extremes, their ranges
+            sh_ranges = None if sh_values is None else np.ptp(sh_values, axis=0)
+            rows = _probe_rows(cloud)
+            if rows.size < cloud.num_gaussians:
+                rows = np.union1d(rows, _extreme_rows(cloud, sh_values))
+            sh_values = None
+            rates, errors, overhead = self._probe(rows, bar)
             self.seconds_["probe"] = time.perf_counter() - tic
             tic = time.perf_counter()
             sensitivity = self._sensitivities(errors, bar)
@@ -283,7 +290,7 @@ class RateController:
             self.seconds_["calibrate"] = time.perf_counter() - tic
         grid = np.arange(0, 52)
         for name in rates:
-            rate = self._sh_rates(grid) if name == "sh" else _interpolate_log(PROBE_QPS, rates[name], grid)
+            rate = self._sh_rates(grid, sh_ranges) if name == "sh" else _interpolate_log(PROBE_QPS, rates[name], grid)
             self.models_[name] = AttributeModel(
                 name, grid, rate, sensitivity[name] * _interpolate_log(PROBE_QPS, errors[name], grid))
         self.models_["positions"] = self._position_model(sensitivity["positions"])
@@ -312,12 +319,9 @@ class RateController:
                 bar.update(1)
         return out
 
-    def _probe(self, bar: Any = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
-        """Per attribute, bytes (scaled to the whole cloud) and attribute MSE at each probe QP
-        (``bar``: a progress bar advanced once per probe)."""
-        rows = _probe_rows(self.cloud)
-        if rows.size < self.cloud.num_gaussians:
-            rows = np.union1d(rows, _extreme_rows(self.cloud, self._sh_values()))
+    def _probe(self, rows: np.ndarray, bar: Any = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
+        """Per attribute, bytes (scaled to the whole cloud) and attribute MSE at each probe QP of the
+        probe made of ``rows`` (``bar``: a progress bar advanced once per probe)."""
         self._sh_points = {}
         probe = self.cloud.select(rows)
         scale = self.cloud.num_gaussians / probe.num_gaussians
@@ -367,25 +371,27 @@ class RateController:
         self._sh_points.setdefault(-1, {})[int(stream.header["sh"]["features"])] = \
             float(stream.attribute_sizes().get("sh_state", 0))
 
-    def _sh_rates(self, grid: np.ndarray) -> np.ndarray:
-        """Bytes of the water-filled SH features at each base QP of ``grid``: the sum over the features
-        kept of each one's bytes at its own QP (interpolated between the probe's), plus the stage's
-        side information (interpolated in the number kept). Water-filling drops features as the base QP
-        rises, which one curve over the base QP would smear between the probe's QPs."""
-        values = self._sh_values()
-        ranges, weights = np.ptp(values, axis=0), self.stage_.feature_weights()
+    def _sh_rates(self, grid: np.ndarray, ranges: np.ndarray) -> np.ndarray:
+        """Bytes of the water-filled SH features (value ``ranges`` per feature) at each base QP of
+        ``grid``: the sum over the features kept of each one's bytes at its own QP (interpolated
+        between the probe's), plus the stage's side information (interpolated in the number kept).
+        Water-filling drops features as the base QP rises, which one curve over the base QP would
+        smear between the probe's QPs."""
+        weights = self.stage_.feature_weights()
         curves: dict[int, np.ndarray] = {}
         for feature, points in sorted(self._sh_points.items()):
             if feature >= 0 and points:
                 qps = sorted(points)
                 curves[feature] = _interpolate_log(qps, np.array([points[q] for q in qps]), np.arange(0, 52))
+        # a feature the probe never kept (only below its lowest QP) costs what the last measured one
+        # before it does (the first measured one when none comes before it)
+        curve_of = [curves.get(f, curves[max((k for k in curves if k <= f), default=min(curves))])
+                    for f in range(ranges.size)] if curves else []
         state = sorted(self._sh_points.get(-1, {}).items())
         out = np.zeros(grid.size)
         for i, base in enumerate(grid):
             qps = waterfill_qps(ranges, weights, int(base))
-            # a feature the probe never kept (only below its lowest QP) costs what the last measured one does
-            out[i] = sum(curves.get(f, curves[max(k for k in curves if k <= f)] if any(k <= f for k in curves)
-                                    else next(iter(curves.values())))[q] for f, q in enumerate(qps))
+            out[i] = sum(curve_of[f][q] for f, q in enumerate(qps))
             if state:
                 out[i] += float(np.interp(len(qps), [k for k, _ in state], [v for _, v in state]))
         return out
