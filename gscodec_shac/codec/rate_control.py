@@ -579,11 +579,13 @@ class RateController:
             tried.add(_key(plan))
             started = time.perf_counter()
             expected = self._corrected_psnr(plan, measured_plans) if target.kind == "psnr" else plan.predicted_psnr
+            cached = set(self._cache)
             stream = self._encode(plan, target)
             bar.update(1)
             size = stream.total_bytes()
             trials.append({"predicted_bytes": plan.predicted_bytes, "bytes": size,
-                           "model_psnr": plan.predicted_psnr, "predicted_psnr": expected})
+                           "model_psnr": plan.predicted_psnr, "predicted_psnr": expected,
+                           "chunks": len(stream.chunks), "chunks_coded": _coded_chunks(set(self._cache) - cached)})
             self._learn(plan, stream)
             if target.kind == "bytes":
                 if size <= target.value and (best is None or size > best[0].total_bytes()):
@@ -725,6 +727,11 @@ def _model_sizes(stream: Bitstream) -> dict[str, int]:
     sizes = dict(stream.attribute_sizes())
     sizes["sh"] = sizes.get("sh", 0) + sizes.pop("sh_state", 0)
     return sizes
+
+
+def _coded_chunks(keys: set) -> int:
+    """How many of the chunk cache's new ``keys`` are coded chunks (not placements or SH features)."""
+    return sum(1 for key in keys if key[0] != "__work__" or key[1].startswith("positions-"))
 
 
 def _prune(min_opacity: float = 0.0, keep_share: float = 1.0) -> dict[str, float]:
