@@ -13,8 +13,9 @@ its children, from ``os.wait4``) and peak RSS:
   file (skipped, with a line saying why, when node or the tool is absent);
 
 plus ``startup``: ``gscodec-shac decode`` of a 300-Gaussian fixture stream (start-up cost).
-``--baseline ../main`` runs the encode and every decode step under that checkout too, right
-before ours (the baseline's stream is overwritten by ours; both must be the same bytes).
+``--baseline ../main`` runs the encode, every decode step and the target encode under that
+checkout too, right before ours (the baseline's stream is overwritten by ours; the fixed encode's
+must be the same bytes), and prints the baseline's target / encode ratio beside ours.
 Ratios (target / encode, decode / spz_read, encode / spz_write) are printed; all rows go
 to ``OUT/bench_speed.json`` and ``.csv`` with the load average at each step.
 
@@ -88,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-peer", action="store_true", help="skip splat-transform")
     parser.add_argument("--nice", type=int, default=5, help="niceness of the measured processes")
     parser.add_argument("--baseline", type=Path,
-                        help="another checkout: its encode and decodes run right before ours (paired)")
+                        help="another checkout: its encodes and decodes run right before ours (paired)")
     args = parser.parse_args(argv)
     args.out = args.out.resolve()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -122,11 +123,14 @@ def main(argv: list[str] | None = None) -> int:
         paired_step(size, "decode_arrays", [sys.executable, "-c", DECODE_ARRAYS, str(gsc)])
         decode = paired_step(size, "decode", [*cli, "decode", str(gsc), str(dec), "--force"])
         if not args.no_target:
-            target = record(size, "target_bpg", measured(
-                [*cli, "encode", str(ply), str(args.out / size / f"s{size}_target.gsc"), "--target-bpg",
-                 str(args.target_bpg), "--force"], args.nice))
-            print(f"{size:>5} ratio target / encode: {target['wall_s'] / enc['wall_s']:.2f} (wall), "
-                  f"{target['cpu_s'] / enc['cpu_s']:.2f} (cpu)")
+            aimed_gsc = args.out / size / f"s{size}_target.gsc"
+            paired_step(size, "target_bpg", [*cli, "encode", str(ply), str(aimed_gsc), "--target-bpg",
+                                             str(args.target_bpg), "--force"])
+            for suffix in ("@baseline",) * (args.baseline is not None) + ("",):
+                fixed, aimed = (next(r for r in reversed(rows) if r["size"] == size and r["step"] == step + suffix)
+                                for step in ("encode", "target_bpg"))
+                print(f"{size:>5} ratio target / encode{suffix}: {aimed['wall_s'] / fixed['wall_s']:.2f} (wall), "
+                      f"{aimed['cpu_s'] / fixed['cpu_s']:.2f} (cpu)")
         if peer is not None:
             spz = args.out / size / f"s{size}.spz"
             write = record(size, "spz_write", measured([str(peer), "-w", "-q", str(ply), str(spz)], args.nice))

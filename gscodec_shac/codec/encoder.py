@@ -390,7 +390,7 @@ class Encoder:
         quantizer = qz.Quantizer.fit(values, spec.bits, rows)
         stream.require("positions_set")
         job = _Job("positions", {"attribute": "positions", "encoding": "morton_set", "bits": spec.bits})
-        job.key = self._work_cache_key(f"positions-{spec.bits}")
+        job.key = None if self._work_key is None else position_set_cache_key(self.rate_point, spec.bits)
         if job.key is not None and job.key in self._chunk_cache:  # type: ignore[operator]
             job.data = self._chunk_cache[job.key]  # type: ignore[index]
         else:
@@ -498,6 +498,12 @@ def _work_key(rp: RatePoint) -> str:
     positions = rp.attributes["positions"]
     return json.dumps([rp.prune_json(), rp.positions_as_set, positions.bits if rp.positions_as_set else None,
                        rp.sort.to_json(), rp.sort.multiple], sort_keys=True, default=str)
+
+
+def position_set_cache_key(rp: RatePoint, bits: int) -> tuple:
+    """The shared cache's key of the set-coded position chunk at ``bits`` under ``rp``'s pruning and
+    sorting (the rate controller stores the chunks it coded to model the position bits under it)."""
+    return ("__work__", f"positions-{bits}", _work_key(rp))
 
 
 def _cache_key(name: str, codec: GridCodec, planes: np.ndarray, bits: int, qp: int | None) -> tuple:
