@@ -4,7 +4,9 @@ The template rate point (``rate_points/shac_auto.yaml``) fixes the containers an
 stage; for each scene and target the controller chooses seven settings: the opacity below
 which Gaussians are pruned, the position bits (set coding) and the QPs of opacity,
 rotation, scale, DC and the water-filled SHAC-PCA features (whose base QP also picks the
-rank M, :mod:`.allocation`).
+rank M, :mod:`.allocation`). A template with SH stage ``none`` codes every AC coefficient
+instead, on its ``sh_ac`` degree ladder, whose first QP takes the place of the base QP (the
+controller without an SH stage, :func:`gscodec_shac.rd.methods.template_without_sh`).
 
 The attributes are coded independently, so both the size and, for small errors, the
 rendered mean squared error are sums over attributes. The controller therefore models
