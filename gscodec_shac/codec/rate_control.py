@@ -4,7 +4,9 @@ The template rate point (``rate_points/shac_auto.yaml``) fixes the containers an
 stage; for each scene and target the controller chooses seven settings: the opacity below
 which Gaussians are pruned, the position bits (set coding) and the QPs of opacity,
 rotation, scale, DC and the water-filled SHAC-PCA features (whose base QP also picks the
-rank M, :mod:`.allocation`).
+rank M, :mod:`.allocation`). A template with SH stage ``none`` codes every AC coefficient
+instead, on its ``sh_ac`` degree ladder, whose first QP takes the place of the base QP (the
+controller without an SH stage, :func:`gscodec_shac.rd.methods.template_without_sh`).
 
 The attributes are coded independently, so both the size and, for small errors, the
 rendered mean squared error are sums over attributes. The controller therefore models
@@ -67,7 +69,7 @@ from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac import limits
 from gscodec_shac.limits import default_workers
 from gscodec_shac.gaussians import GaussianCloud
-from gscodec_shac.shac.base import ShStage, make_stage
+from gscodec_shac.shac.base import STAGES, ShStage, make_stage
 
 #: The template rate point of SHAC-auto.
 TEMPLATE = "shac_auto:template"
@@ -249,6 +251,9 @@ class RateController:
         self.prune_: list[tuple[dict[str, float], float, float]] = [(_prune(), 1.0, 0.0)]
         self.overhead_: float = 0.0
         self.stage_: ShStage | None = None
+        #: the rate-point attribute the ``sh`` QP sets: the water-filled features, or the AC coefficients
+        #: of a template without an SH stage (stage ``none``: its degree ladder moves with the base QP)
+        self.sh_attribute = STAGES.get(point.sh_stage).rate_attribute
         self.seconds_: dict[str, float] = {}
         self._cache: dict = {}
         self._references: list[np.ndarray] = []
@@ -296,7 +301,7 @@ class RateController:
             self.models_["positions"] = self._position_model(coded, sensitivity["positions"])
         grid = np.arange(0, 52)
         for name in rates:
-            rate = self._sh_rates(grid, sh_ranges) if name == "sh" else _interpolate_log(PROBE_QPS, rates[name], grid)
+            rate = self._sh_rates(grid, sh_ranges) if name == "sh" and self._waterfilled else _interpolate_log(PROBE_QPS, rates[name], grid)
             self.models_[name] = AttributeModel(
                 name, grid, rate, sensitivity[name] * _interpolate_log(PROBE_QPS, errors[name], grid))
         self.overhead_ = overhead
@@ -347,12 +352,17 @@ class RateController:
                 errors[a][i] = _attribute_mse(a, source, decoded, point.color == "ycbcr")
             if qp == SENSITIVITY_QP:
                 self._probe_decoded = (rows[encoder.order_], decoded)
-            if "sh" in names:
+            if "sh" in names and self._waterfilled:
                 self._record_sh_chunks(stream, scale)
             overhead = max(overhead, sizes.get("header", 0))
             if bar is not None:
                 bar.update(1)
         return rates, errors, overhead
+
+    @property
+    def _waterfilled(self) -> bool:
+        """Whether the ``sh`` QP is the base QP of water-filled features (else of the AC degree ladder)."""
+        return self.sh_attribute == "sh_features"
 
     def _sh_values(self) -> np.ndarray | None:
         """The whole cloud's SH features as the encoder quantises them (YCbCr triplets where it applies)."""
@@ -548,9 +558,13 @@ class RateController:
         for name, value in settings.items():
             if name == "prune":
                 continue
-            key = "sh_features" if name == "sh" else name
+            key = self.sh_attribute if name == "sh" else name
             field_name = "bits" if name == "positions" else "qp"
-            attributes[key] = dataclasses.replace(attributes[key], **{field_name: int(value)})
+            qp = attributes[key].qp
+            if field_name == "qp" and isinstance(qp, tuple):  # a degree ladder: its first QP moves, the steps stay
+                value = tuple(min(51, int(value) + q - qp[0]) for q in qp)
+            attributes[key] = dataclasses.replace(attributes[key], **{field_name: value if isinstance(value, tuple)
+                                                                      else int(value)})
         return dataclasses.replace(point, attributes=attributes, name=f"{point.name}+auto",
                                    **self.prune_[settings.get("prune", 0)][0])
 
