@@ -1,0 +1,122 @@
+"""Per-Gaussian SH degree (rate point ``sh.dc_only_share``, codec/sh_degree.py): DC-only Gaussians
+decode with zero AC coefficients, the others as the stage codes them; bad streams are one error."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from gscodec_shac.codec import Bitstream, Decoder, Encoder, load_rate_point
+from gscodec_shac.codec.header import read_header
+from gscodec_shac.codec.rate_points import load_rate_point_file
+from gscodec_shac.codec.sh_degree import CHUNK, FEATURE, ac_energy, dc_only_flags, flags_chunk
+from gscodec_shac.errors import BitstreamError, RatePointError, ValidationError
+
+POINT = "shac_ladder:rp6"
+
+
+def _encode(cloud, share: float, stage: str = "none", point: str = POINT, **params) -> tuple[Encoder, bytes]:
+    rate_point = load_rate_point(point).with_overrides(dc_only_share=share)
+    encoder = Encoder(rate_point, sh_stage=stage, sh_params=params or None, workers=2)
+    return encoder, encoder.encode(cloud).to_bytes()
+
+
+@pytest.mark.parametrize("stage, params, point", [("none", {}, POINT), ("pca", {"energy_retention": 0.97}, POINT),
+                                                  ("none", {}, "paper_table3:rp2")])
+def test_dc_only_gaussians_decode_with_zero_ac_and_the_others_as_before(small_cloud, stage, params, point):
+    share = 0.4
+    plain, plain_bytes = _encode(small_cloud, 0.0, stage, point, **params)
+    encoder, data = _encode(small_cloud, share, stage, point, **params)
+    stream, before = Bitstream.from_bytes(data), Bitstream.from_bytes(plain_bytes)
+    assert stream.version == (2, 3) and FEATURE in stream.features and FEATURE not in before.features
+    decoded, reference = Decoder().decode(data), Decoder().decode(plain_bytes)
+    np.testing.assert_array_equal(encoder.order_, plain.order_)  # the same grid order ...
+    for name in ("means", "scales", "quats", "opacities", "sh_dc"):  # ... and the same other attributes
+        np.testing.assert_array_equal(getattr(decoded, name), getattr(reference, name))
+    # the DC-only Gaussians are the share with the least alpha-weighted AC energy of the input
+    ac = small_cloud.ac_matrix()[encoder.order_]
+    expected = dc_only_flags(ac_energy(ac, small_cloud.activated_opacities()[encoder.order_]), share)
+    zero = ~decoded.sh_rest.reshape(decoded.num_gaussians, -1).any(axis=1)
+    np.testing.assert_array_equal(zero, expected)
+    assert zero.sum() == round(share * decoded.num_gaussians) == read_header(stream).sh.dc_only
+    # the others keep their view-dependent colour: as close to the input as without the feature
+    error = np.abs(decoded.sh_rest[~zero] - small_cloud.sh_rest[encoder.order_][~zero]).mean()
+    plain_error = np.abs(reference.sh_rest[~zero] - small_cloud.sh_rest[plain.order_][~zero]).mean()
+    assert error <= 1.5 * plain_error + 1e-3
+    # fewer SH bytes: the SH planes hold the coded Gaussians only
+    assert stream.attribute_sizes()["sh"] < before.attribute_sizes()["sh"]
+
+
+def test_share_zero_changes_nothing(small_cloud):
+    _, plain = _encode(small_cloud, 0.0)
+    assert Encoder(POINT, sh_stage="none", workers=2).encode(small_cloud).to_bytes() == plain
+
+
+def test_a_stage_that_codes_the_dc_refuses(small_cloud):
+    with pytest.raises(ValidationError, match="DC-only"):
+        _encode(small_cloud, 0.5, "pca", n_components=8, include_dc=True)
+
+
+def _edited(data: bytes, edit) -> bytes:
+    stream = Bitstream.from_bytes(data)
+    edit(stream)
+    return stream.to_bytes()
+
+
+def _set_flags(stream: Bitstream, flags: np.ndarray) -> None:
+    packed, raw = flags_chunk(flags)
+    stream.chunk(CHUNK).data = packed
+    stream.chunk(CHUNK).meta["raw_size"] = raw
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda s: s.header["sh"].update(dc_only=s.header["sh"]["dc_only"] + 1), "flags .* the header says"),
+    (lambda s: _set_flags(s, np.ones(s.header["num_gaussians"], bool)), "flags .* the header says"),
+    (lambda s: s.header["sh"].pop("dc_only"), "sh.dc_only"),
+    (lambda s: s.features.discard(FEATURE), "sh.dc_only"),
+    (lambda s: s.header["sh"].pop("grid"), "sh.grid"),
+    (lambda s: s.header["sh"]["grid"].update(height=1), "sh.grid"),
+    (lambda s: s.header["sh"]["grid"].update(padding="mask"), "sh.grid.padding"),
+    (lambda s: s.chunks.remove(s.chunk(CHUNK)), CHUNK),
+    (lambda s: s.chunk(CHUNK).meta.update(raw_size=3), CHUNK),
+])
+def test_bad_dc_only_streams_are_one_clear_error(small_cloud, edit, message):
+    _, data = _encode(small_cloud, 0.5)
+    with pytest.raises(BitstreamError, match=message):
+        Decoder().decode(_edited(data, edit))
+
+
+@pytest.mark.parametrize("value", [1, 1.5, -0.1, "half", True, float("nan")])
+def test_bad_dc_only_share_is_one_clear_error(tmp_path, value):
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump({"points": {"a": {"sh": {"stage": "none", "dc_only_share": value}}}}))
+    with pytest.raises(RatePointError, match=r"sh\.dc_only_share.*\[0, 1\)"):
+        load_rate_point_file(path)
+    with pytest.raises(RatePointError, match=r"\[0, 1\)"):
+        load_rate_point(POINT).with_overrides(dc_only_share=value)
+
+
+def test_dc_only_settings_round_trip_through_yaml(tmp_path):
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump({"points": {"a": {"sh": {"stage": "pca", "dc_only_share": 0.25,
+                                                            "dc_only_weight": "render"}}}}))
+    point = load_rate_point_file(path)["a"]
+    assert (point.dc_only_share, point.dc_only_weight, point.sh_stage) == (0.25, "render", "pca")
+    assert point.to_json()["sh"] == {"stage": "pca", "dc_only_share": 0.25, "dc_only_weight": "render",
+                                     **point.sh_params}
+    assert "dc_only_share" not in load_rate_point(POINT).to_json()["sh"]  # absent: the header is unchanged
+
+
+def test_render_weight_ranks_by_importance(small_scene):
+    cloud = small_scene.cloud
+    rate_point = load_rate_point(POINT).with_overrides(dc_only_share=0.5)
+    importance = np.linspace(0.0, 1.0, cloud.num_gaussians)  # a given importance wins over a measured one
+    import dataclasses
+
+    encoder = Encoder(dataclasses.replace(rate_point, dc_only_weight="render"), sh_stage="none", workers=2,
+                      importance=importance)
+    decoded = Decoder().decode(encoder.encode(cloud).to_bytes())
+    zero = ~decoded.sh_rest.reshape(decoded.num_gaussians, -1).any(axis=1)
+    ac = cloud.ac_matrix()[encoder.order_]
+    np.testing.assert_array_equal(zero, dc_only_flags(ac_energy(ac, importance[encoder.order_]), 0.5))
