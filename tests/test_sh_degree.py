@@ -120,3 +120,22 @@ def test_render_weight_ranks_by_importance(small_scene):
     zero = ~decoded.sh_rest.reshape(decoded.num_gaussians, -1).any(axis=1)
     ac = cloud.ac_matrix()[encoder.order_]
     np.testing.assert_array_equal(zero, dc_only_flags(ac_energy(ac, importance[encoder.order_]), 0.5))
+
+
+def test_cli_sh_dc_only(tmp_path, small_scene, capsys):
+    from gscodec_shac.cli import main
+    from gscodec_shac.io.ply import write_ply
+
+    ply, out = tmp_path / "in.ply", tmp_path / "out.gsc"
+    write_ply(ply, small_scene.cloud)
+    assert main(["encode", str(ply), str(out), "--sh-dc-only", "1", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error:") and "[0, 1)" in err and "Traceback" not in err and not out.exists()
+    assert main(["encode", str(ply), str(out), "--sh-dc-only", "0.5", "--target-bpg", "100"]) == 2
+    assert "--sh-dc-only cannot be combined with a target" in capsys.readouterr().err
+    assert main(["encode", str(ply), str(out), "--sh-dc-only", "0.5", "-q"]) == 0
+    decoded = Decoder().decode(out.read_bytes())
+    zero = ~decoded.sh_rest.reshape(decoded.num_gaussians, -1).any(axis=1)
+    assert zero.sum() == round(0.5 * decoded.num_gaussians)
+    assert main(["info", str(out), "--json"]) == 0
+    assert '"sh_dc_only": %d' % zero.sum() in capsys.readouterr().out

@@ -67,6 +67,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="keep this share of the Gaussians, in (0, 1]: those that contribute most to renders "
                         "from --cameras (else orbit views), after the rate point's opacity threshold "
                         "(default: the rate point's prune.keep_share, 1; docs/rate_control.md)")
+    parser.add_argument("--sh-dc-only", type=float, metavar="SHARE",
+                        help="code this share of the Gaussians, in [0, 1), with their DC colour only: those whose "
+                        "view-dependent colour (AC energy times opacity) is weakest; the SH stage sees the others "
+                        "only (default: the rate point's sh.dc_only_share, 0; docs/rate_control.md)")
     parser.add_argument("--sh", choices=STAGES.names(),
                         help="SH stage (default: pca without --rate-point, else the rate point's): "
                         + "; ".join(f"{name}: {cls.summary}" for name, cls in STAGES.items()))
@@ -129,7 +133,8 @@ def run(args: argparse.Namespace) -> int:
     summary = encode_file(
         args.input, args.output, point, sh=stage, sort=args.sort, seed=args.seed, preset=args.preset,
         progress=not args.quiet and sys.stderr.isatty(), choose_sh=choose_default_sh if automatic else None,
-        network_bits=args.network_bits, keep_share=args.prune_keep, cameras=args.cameras,
+        network_bits=args.network_bits, keep_share=args.prune_keep, dc_only_share=args.sh_dc_only,
+        cameras=args.cameras,
         up=tuple(comma_floats(args.up, "--up")), **params,
     )
     notes = list(summary["notes"])
@@ -183,7 +188,8 @@ def _run_to_target(args: argparse.Namespace) -> int:
     from gscodec_shac.io.models import report_notes
 
     fixed = [flag for flag, value in (("--sh", args.sh), ("--sort", args.sort), ("--seed", args.seed),
-                                      ("--network-bits", args.network_bits), ("--prune-keep", args.prune_keep))
+                                      ("--network-bits", args.network_bits), ("--prune-keep", args.prune_keep),
+                                      ("--sh-dc-only", args.sh_dc_only))
              if value is not None]
     fixed += ["--" + f.replace("_", "-") for f in stage_options() if getattr(args, f) is not None]
     if fixed:
