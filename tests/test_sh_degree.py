@@ -139,3 +139,37 @@ def test_cli_sh_dc_only(tmp_path, small_scene, capsys):
     assert zero.sum() == round(0.5 * decoded.num_gaussians)
     assert main(["info", str(out), "--json"]) == 0
     assert '"sh_dc_only": %d' % zero.sum() in capsys.readouterr().out
+
+
+def test_energy_bar_drops_at_most_that_fraction_of_the_energy():
+    energy = np.array([3.0, 0.0, 4.0, 1.0, 0.0, 2.0])  # total 10
+    assert np.flatnonzero(dc_only_flags(energy, 0.0, 0.1)).tolist() == [1, 3, 4]  # 0 + 0 + 1 <= 1
+    assert np.flatnonzero(dc_only_flags(energy, 0.0, 0.05)).tolist() == [1, 4]
+    assert np.flatnonzero(dc_only_flags(energy, 0.5)).tolist() == [1, 3, 4]  # a share: the 3 weakest
+    assert dc_only_flags(np.zeros(4), 0.0, 0.5).sum() == 3  # never all of them
+
+
+def test_energy_bar_and_share_are_one_or_the_other(tmp_path, small_cloud, capsys):
+    path = tmp_path / "both.yaml"
+    path.write_text(yaml.safe_dump({"points": {"a": {"sh": {"dc_only_share": 0.2, "dc_only_energy": 0.02}}}}))
+    with pytest.raises(RatePointError, match="not both"):
+        load_rate_point_file(path)
+    with pytest.raises(RatePointError, match=r"energy bar .*\[0, 1\)"):
+        load_rate_point(POINT).with_overrides(dc_only_energy=1.0)
+    point = load_rate_point(POINT).with_overrides(dc_only_energy=0.02)
+    assert point.dc_only and point.to_json()["sh"]["dc_only_energy"] == 0.02
+    encoder = Encoder(point, sh_stage="none", workers=2)
+    decoded = Decoder().decode(encoder.encode(small_cloud).to_bytes())
+    zero = ~decoded.sh_rest.reshape(decoded.num_gaussians, -1).any(axis=1)
+    ac = small_cloud.ac_matrix()[encoder.order_]
+    energy = ac_energy(ac, small_cloud.activated_opacities()[encoder.order_])
+    np.testing.assert_array_equal(zero, dc_only_flags(energy, 0.0, 0.02))
+    assert 0 < zero.sum() and energy[zero].sum() <= 0.02 * energy.sum()
+
+    from gscodec_shac.cli import main
+    from gscodec_shac.io.ply import write_ply
+
+    ply = tmp_path / "in.ply"
+    write_ply(ply, small_cloud)
+    assert main(["encode", str(ply), str(tmp_path / "o.gsc"), "--sh-dc-only", "0.2", "--sh-dc-energy", "0.02"]) == 2
+    assert "give one of them" in capsys.readouterr().err

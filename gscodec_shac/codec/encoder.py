@@ -358,7 +358,7 @@ class Encoder:
         """What each grid-order Gaussian's AC energy is weighted by when choosing the DC-only ones
         (rate point ``sh.dc_only_weight``); None when none is DC-only."""
         rp = self.rate_point
-        if rp.dc_only_share <= 0:
+        if not rp.dc_only:
             return None
         if rp.dc_only_weight == "render":
             return self._importance(cloud)[self.order_]
@@ -407,10 +407,10 @@ class Encoder:
             raise ValidationError(f"SH stage {stage.name!r} codes the DC inside its features: it cannot leave "
                                   f"Gaussians DC-only (sh.dc_only_share)")
         rp = self.rate_point
-        flags = degrees.dc_only_flags(degrees.ac_energy(ac, dc_only_weight), rp.dc_only_share)
+        flags = degrees.dc_only_flags(degrees.ac_energy(ac, dc_only_weight), rp.dc_only_share, rp.dc_only_energy)
         coded = np.flatnonzero(~flags)
         features = self._stage_features(stage, cloud.select(coded), GatheredRows(ac.base, ac.index[coded]),
-                                        f"-dc{rp.dc_only_share}-{rp.dc_only_weight}")
+                                        f"-dc{rp.dc_only_share}-{rp.dc_only_energy}-{rp.dc_only_weight}")
         self._dc_only = flags
         return features
 

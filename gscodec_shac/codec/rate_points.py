@@ -40,7 +40,8 @@ share of the input Gaussians, those with the highest render-based importance
 (:mod:`gscodec_shac.codec.importance`), after the opacity threshold. ``sh.dc_only_share`` (in
 [0, 1), default 0) codes that share of the kept Gaussians with their DC colour only, those whose
 view-dependent colour is weakest (:mod:`gscodec_shac.codec.sh_degree`); ``sh.dc_only_weight``
-(``alpha``, the default, or ``render``) is what that energy is weighted by.
+(``alpha``, the default, or ``render``) is what that energy is weighted by; ``sh.dc_only_energy``
+(in [0, 1), instead of a share) codes DC-only as many as drop at most that fraction of the energy.
 
 References: ``"paper_table3:rp2"`` (a file shipped in
 ``rate_points/`` at the repository root, shipped in the wheel), ``"my.yaml:fast"`` or ``"my.yaml"`` (a file
@@ -146,6 +147,12 @@ class RatePoint:
     #: Share of the kept Gaussians coded DC-only, and the weight of their AC energy (:mod:`.sh_degree`).
     dc_only_share: float = 0.0
     dc_only_weight: str = "alpha"
+    dc_only_energy: float = 0.0
+
+    @property
+    def dc_only(self) -> bool:
+        """Whether some Gaussians may be coded DC-only (a share or an energy bar is set)."""
+        return self.dc_only_share > 0 or self.dc_only_energy > 0
 
     @property
     def positions_as_set(self) -> bool:
@@ -177,6 +184,7 @@ class RatePoint:
         codec_options: Mapping[str, Any] | None = None,
         keep_share: float | None = None,
         dc_only_share: float | None = None,
+        dc_only_energy: float | None = None,
     ) -> "RatePoint":
         """A copy with the SH stage, sorting, lossy-codec options or importance pruning replaced (CLI overrides).
 
@@ -215,7 +223,11 @@ class RatePoint:
         if dc_only_share is not None:
             if not _is_dc_only_share(dc_only_share):
                 raise RatePointError(f"the DC-only share must be a number in [0, 1), got {dc_only_share!r}")
-            point = dataclasses.replace(point, dc_only_share=float(dc_only_share))
+            point = dataclasses.replace(point, dc_only_share=float(dc_only_share), dc_only_energy=0.0)
+        if dc_only_energy is not None:
+            if not _is_dc_only_share(dc_only_energy):
+                raise RatePointError(f"the DC-only energy bar must be a number in [0, 1), got {dc_only_energy!r}")
+            point = dataclasses.replace(point, dc_only_energy=float(dc_only_energy), dc_only_share=0.0)
         return point
 
     def sh_json(self) -> dict[str, Any]:
@@ -223,7 +235,11 @@ class RatePoint:
         keep their bytes)."""
         out = {"stage": self.sh_stage, **self.sh_params}
         if self.dc_only_share > 0:
-            out.update(dc_only_share=self.dc_only_share, dc_only_weight=self.dc_only_weight)
+            out["dc_only_share"] = self.dc_only_share
+        if self.dc_only_energy > 0:
+            out["dc_only_energy"] = self.dc_only_energy
+        if self.dc_only:
+            out["dc_only_weight"] = self.dc_only_weight
         return out
 
     def to_json(self) -> dict[str, Any]:
@@ -364,6 +380,11 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
     if not _is_dc_only_share(dc_only_share):
         raise where.error("sh.dc_only_share", f"must be a number in [0, 1), got {dc_only_share!r}")
     dc_only_weight = where.choice(sh.pop("dc_only_weight", "alpha"), DC_ONLY_WEIGHTS, "sh.dc_only_weight")
+    dc_only_energy = sh.pop("dc_only_energy", 0.0)
+    if not _is_dc_only_share(dc_only_energy):
+        raise where.error("sh.dc_only_energy", f"must be a number in [0, 1), got {dc_only_energy!r}")
+    if dc_only_share and dc_only_energy:
+        raise where.error("sh.dc_only_energy", "give a DC-only share or an energy bar, not both")
     sh = _stage_class(stage, where, "sh.stage").check_params(sh, where, "sh")
 
     sort_raw = where.mapping(raw.get("sort"), "sort")
@@ -414,6 +435,7 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
         keep_share=float(keep_share),
         dc_only_share=float(dc_only_share),
         dc_only_weight=dc_only_weight,
+        dc_only_energy=float(dc_only_energy),
     )
 
 

@@ -5,16 +5,19 @@ the basis is orthonormal over the sphere, so the mean square of that colour over
 directions is proportional to the squared norm of its AC row. Weighted by how much the
 Gaussian shows (``alpha``: its opacity; ``render``: its summed blending weight over the views,
 :mod:`.importance`), that is the energy dropped from the images when the AC row is zeroed. The
-rate point's ``sh.dc_only_share`` of the kept Gaussians with the least of it are coded DC-only.
+rate point's ``sh.dc_only_share`` of the kept Gaussians with the least of it are coded DC-only,
+or with ``sh.dc_only_energy`` (an energy bar) as many of them as drop at most that fraction of the
+cloud's total: a bar adapts the share to the scene (bonsai has half its Gaussians under a 2% bar,
+the trained chair a quarter; docs/rate_control.md, "Per-Gaussian SH degree").
 
 In the stream (feature ``sh_dc_only``): one bit per Gaussian in grid order (set: DC only),
 packed and deflated in the zlib chunk ``sh_dc_only``, and their count in the header
 (``sh.dc_only``). The SH stage is fitted on, and transforms, the other (coded) Gaussians only,
 and their features go on a grid of their own (:func:`sh_grid_order`, header ``sh.grid``): the
 coded Gaussians in grid order fill its first cells along the Z-order curve when the main grid
-is Z-ordered (set-coded positions), else in raster order. Its planes shrink with the share;
-on bonsai this was 34% fewer SH bytes at half the Gaussians DC-only than leaving their cells
-in the main grid with the previous Gaussian's features, and 21% fewer than zeroed ones
+is Z-ordered (set-coded positions), else in raster order. Its planes shrink with the share:
+on bonsai, half the Gaussians DC-only, a third fewer SH bytes than leaving their cells in the
+main grid with the previous Gaussian's features, and 14-21% fewer than with zeros there
 (docs/rate_control.md, "Per-Gaussian SH degree"). The decoder zeroes the DC-only Gaussians'
 AC coefficients.
 """
@@ -46,13 +49,19 @@ def ac_energy(ac: np.ndarray | GatheredRows, weight: np.ndarray) -> np.ndarray:
     return energy * np.asarray(weight, dtype=np.float64)
 
 
-def dc_only_flags(energy: np.ndarray, share: float) -> np.ndarray:
-    """(N,) bool: the ``round(share * N)`` rows of least ``energy`` (ties: the later row first), never all."""
+def dc_only_flags(energy: np.ndarray, share: float, bar: float = 0.0) -> np.ndarray:
+    """(N,) bool: the rows of least ``energy`` (ties: the earlier row first), never all of them:
+    ``round(share * N)`` of them, or with ``bar > 0`` the most whose summed energy is at most
+    ``bar`` times the total."""
     n = energy.size
-    count = min(int(round(share * n)), n - 1)
+    order = np.argsort(energy, kind="stable")
+    if bar > 0:
+        dropped = np.cumsum(energy[order])
+        count = int(np.searchsorted(dropped, bar * dropped[-1], side="right")) if n else 0
+    else:
+        count = int(round(share * n))
     flags = np.zeros(n, dtype=bool)
-    if count > 0:
-        flags[np.argsort(energy, kind="stable")[:count]] = True
+    flags[order[: min(count, n - 1)]] = True
     return flags
 
 
