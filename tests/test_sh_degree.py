@@ -173,3 +173,23 @@ def test_energy_bar_and_share_are_one_or_the_other(tmp_path, small_cloud, capsys
     write_ply(ply, small_cloud)
     assert main(["encode", str(ply), str(tmp_path / "o.gsc"), "--sh-dc-only", "0.2", "--sh-dc-energy", "0.02"]) == 2
     assert "give one of them" in capsys.readouterr().err
+
+
+def test_cli_render_weight_uses_the_cameras(tmp_path, capsys):
+    from gscodec_shac.cli import main
+    from gscodec_shac.codec.importance import importance_views
+    from gscodec_shac.io.cameras import load_cameras
+    from gscodec_shac.io.ply import read_ply
+
+    ply, cameras = tmp_path / "scene.ply", tmp_path / "cameras.json"
+    assert main(["synthetic", str(ply), "-n", "1500", "--views", "4"]) == 0
+    alpha, render = tmp_path / "alpha.gsc", tmp_path / "render.gsc"
+    point = ["-r", POINT, "--sh", "none", "--sh-dc-only", "0.5", "-q"]
+    assert main(["encode", str(ply), str(alpha), "--cameras", str(cameras), *point]) == 2
+    assert "--sh-dc-weight render" in capsys.readouterr().err
+    assert main(["encode", str(ply), str(alpha), *point]) == 0
+    assert main(["encode", str(ply), str(render), "--cameras", str(cameras), "--sh-dc-weight", "render", *point]) == 0
+    cloud = read_ply(ply)
+    rate_point = load_rate_point(POINT).with_overrides(dc_only_share=0.5, dc_only_weight="render")
+    expected = Encoder(rate_point, sh_stage="none", views=importance_views(cloud, load_cameras(cameras))).encode(cloud)
+    assert render.read_bytes() == expected.to_bytes() != alpha.read_bytes()

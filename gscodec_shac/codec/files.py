@@ -36,6 +36,7 @@ def encode_file(
     keep_share: float | None = None,
     dc_only_share: float | None = None,
     dc_only_energy: float | None = None,
+    dc_only_weight: str | None = None,
     cameras: str | os.PathLike | None = None,
     up: tuple[float, float, float] = (0.0, 0.0, 1.0),
     **stage_params: Any,
@@ -51,8 +52,8 @@ def encode_file(
     the output heads at 8 bits below 8; default 8, :mod:`.deformation`). ``keep_share`` overrides
     the rate point's importance pruning (:mod:`.importance`), measured on ``cameras`` (any camera
     file) or else orbit views around ``up``; ``dc_only_share`` the rate point's share of DC-only
-    Gaussians (or ``dc_only_energy`` its energy bar, :mod:`.sh_degree`), whose render weight is measured on
-    the same views.
+    Gaussians (or ``dc_only_energy`` its energy bar, ``dc_only_weight`` its weight, :mod:`.sh_degree`);
+    a render weight is measured on the same views.
     """
     from gscodec_shac.deform_arch import is_dynamic_model
     from gscodec_shac.io.models import read_model
@@ -74,7 +75,8 @@ def encode_file(
         sh, chosen = choose_sh(cloud)
         stage_params = {**chosen, **stage_params}
     point = load_rate_point(rate_point).with_overrides(keep_share=keep_share, dc_only_share=dc_only_share,
-                                                       dc_only_energy=dc_only_energy)
+                                                       dc_only_energy=dc_only_energy,
+                                                       dc_only_weight=dc_only_weight)
     views = None
     if point.keep_share < 1.0 or (point.dc_only and point.dc_only_weight == "render"):
         views = importance_views(cloud, load_cameras(cameras) if cameras is not None else None, up=up)

@@ -185,8 +185,10 @@ class RatePoint:
         keep_share: float | None = None,
         dc_only_share: float | None = None,
         dc_only_energy: float | None = None,
+        dc_only_weight: str | None = None,
     ) -> "RatePoint":
-        """A copy with the SH stage, sorting, lossy-codec options or importance pruning replaced (CLI overrides).
+        """A copy with the SH stage, sorting, lossy-codec options, importance pruning or DC-only settings replaced
+        (CLI overrides).
 
         ``sh_params`` replace the point's stage parameters when the stage changes
         and are merged into them otherwise. ``codec_options`` are merged into the
@@ -228,6 +230,10 @@ class RatePoint:
             if not _is_dc_only_share(dc_only_energy):
                 raise RatePointError(f"the DC-only energy bar must be a number in [0, 1), got {dc_only_energy!r}")
             point = dataclasses.replace(point, dc_only_energy=float(dc_only_energy), dc_only_share=0.0)
+        if dc_only_weight is not None:
+            if dc_only_weight not in DC_ONLY_WEIGHTS:
+                raise RatePointError(f"unknown DC-only weight {dc_only_weight!r}; known: {', '.join(DC_ONLY_WEIGHTS)}")
+            point = dataclasses.replace(point, dc_only_weight=dc_only_weight)
         return point
 
     def sh_json(self) -> dict[str, Any]:
