@@ -193,3 +193,13 @@ def test_cli_render_weight_uses_the_cameras(tmp_path, capsys):
     rate_point = load_rate_point(POINT).with_overrides(dc_only_share=0.5, dc_only_weight="render")
     expected = Encoder(rate_point, sh_stage="none", views=importance_views(cloud, load_cameras(cameras))).encode(cloud)
     assert render.read_bytes() == expected.to_bytes() != alpha.read_bytes()
+
+
+def test_a_2_2_decoder_refuses_dc_only_streams(small_cloud, monkeypatch):
+    """The release before format 2.3 does not know the feature: it refuses the stream, naming it."""
+    from gscodec_shac.codec import container
+
+    _, data = _encode(small_cloud, 0.5)
+    monkeypatch.delitem(container.FEATURES, FEATURE)
+    with pytest.raises(BitstreamError, match="needs sh_dc_only.*update gscodec-shac"):
+        Bitstream.from_bytes(data)
