@@ -139,6 +139,8 @@ def test_cli_sh_dc_only(tmp_path, small_scene, capsys):
     assert zero.sum() == round(0.5 * decoded.num_gaussians)
     assert main(["info", str(out), "--json"]) == 0
     assert '"sh_dc_only": %d' % zero.sum() in capsys.readouterr().out
+    assert main(["info", str(out)]) == 0
+    assert f"{zero.sum():,} DC-only" in capsys.readouterr().out
 
 
 def test_energy_bar_drops_at_most_that_fraction_of_the_energy():
