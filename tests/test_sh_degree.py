@@ -194,7 +194,15 @@ def test_cli_render_weight_uses_the_cameras(tmp_path, capsys):
     cloud = read_ply(ply)
     rate_point = load_rate_point(POINT).with_overrides(dc_only_share=0.5, dc_only_weight="render")
     expected = Encoder(rate_point, sh_stage="none", views=importance_views(cloud, load_cameras(cameras))).encode(cloud)
-    assert render.read_bytes() == expected.to_bytes() != alpha.read_bytes()
+
+    def dc_only(data: bytes) -> np.ndarray:
+        decoded = Decoder().decode(data)
+        return ~decoded.sh_rest.reshape(decoded.num_gaussians, -1).any(axis=1)
+
+    # the renderer's threads sum the blending weights in any order: near-ties may rank either way
+    wanted = dc_only(expected.to_bytes())
+    assert np.mean(dc_only(render.read_bytes()) != wanted) <= 0.01
+    assert np.mean(dc_only(alpha.read_bytes()) != wanted) > 0.05
 
 
 def test_a_2_2_decoder_refuses_dc_only_streams(small_cloud, monkeypatch):
@@ -205,3 +213,13 @@ def test_a_2_2_decoder_refuses_dc_only_streams(small_cloud, monkeypatch):
     monkeypatch.delitem(container.FEATURES, FEATURE)
     with pytest.raises(BitstreamError, match="needs sh_dc_only.*update gscodec-shac"):
         Bitstream.from_bytes(data)
+
+
+def test_a_stage_without_features_needs_no_flags(small_cloud):
+    """Truncation to degree 0 codes no AC at all: no flags, the chunks of the stream without DC-only Gaussians."""
+    _, data = _encode(small_cloud, 0.5, "trunc", degree=0)
+    _, plain = _encode(small_cloud, 0.0, "trunc", degree=0)
+    stream, before = Bitstream.from_bytes(data), Bitstream.from_bytes(plain)
+    assert FEATURE not in stream.features and "dc_only" not in stream.header["sh"]
+    assert [(c.name, c.data) for c in stream.chunks] == [(c.name, c.data) for c in before.chunks]
+    assert not Decoder().decode(data).sh_rest.any()

@@ -123,7 +123,7 @@ class Decoder:
         if view.sh is None:
             sh_rest = np.zeros((n, sh_index.num_rest_coeffs(degree), 3), dtype=np.float32)
         else:
-            features = values.pop("sh", np.zeros((n, 0)))
+            features = values.pop("sh", np.zeros((grids["sh"][1] if "sh" in grids else n, 0)))
             if view.sh.ycbcr:
                 features = qz.triplets_from_ycbcr(features)
             if not view.sh.lossless:

@@ -299,7 +299,7 @@ class Encoder:
                 "uses_dc": bool(stage.uses_dc),
                 "ycbcr": bool(ycbcr and stage.ycbcr_applies(n_features)),
             }
-            if self._dc_only is not None:  # per-Gaussian SH degree (sh_degree.py)
+            if self._dc_only is not None and n_features:  # per-Gaussian SH degree (sh_degree.py)
                 packed, raw_size = degrees.flags_chunk(self._dc_only)
                 stream.add_chunk(degrees.CHUNK, packed, attribute=degrees.CHUNK, encoding="zlib",
                                  raw_size=raw_size)
