@@ -405,7 +405,7 @@ class Encoder:
             return self._stage_features(stage, cloud, ac, "")
         if stage.uses_dc:
             raise ValidationError(f"SH stage {stage.name!r} codes the DC inside its features: it cannot leave "
-                                  f"Gaussians DC-only (sh.dc_only_share)")
+                                  f"Gaussians DC-only (sh.dc_only_share, sh.dc_only_energy)")
         rp = self.rate_point
         flags = degrees.dc_only_flags(degrees.ac_energy(ac, dc_only_weight), rp.dc_only_share, rp.dc_only_energy)
         coded = np.flatnonzero(~flags)
