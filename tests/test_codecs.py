@@ -327,3 +327,55 @@ print(all(out[i] == HevcCodec().encode(*jobs[i], 24) for i in range(len(jobs))))
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip() == "True"
+
+
+# ------------------------------------------------------------ x265 worker processes
+def _x265_planes() -> np.ndarray:
+    rng = np.random.default_rng(7)
+    ramp = np.add.outer(np.arange(64), np.arange(80))[None] * 5
+    return ((ramp + rng.integers(0, 60, size=(4, 64, 80))) % 1024).astype(np.uint16)
+
+
+@pytest.mark.parametrize("layout", ["gray", "yuv444", "frames"])
+def test_x265_worker_processes_write_the_in_process_bytes(layout, monkeypatch):
+    from gscodec_shac.codec.grid import x265_processes
+
+    planes = _x265_planes()
+    monkeypatch.setenv(x265_processes.ENV, "1")
+    in_workers = get_codec("hevc", layout=layout).encode(planes, 10, 26)
+    monkeypatch.setenv(x265_processes.ENV, "0")
+    assert get_codec("hevc", layout=layout).encode(planes, 10, 26) == in_workers
+
+
+def test_a_dead_x265_worker_is_replaced_and_the_piece_coded_again(monkeypatch):
+    from gscodec_shac.codec.grid import x265_processes
+    from gscodec_shac.codec.grid.hevc import encode_frames
+
+    frames = list(_x265_planes()[:1])
+    options = {"preset": "fast", "x265-params": "qp=30:info=0:log-level=error:frame-threads=1"}
+    expected = encode_frames(frames, "gray10le", options)
+    assert x265_processes.encode(frames, "gray10le", options) == expected
+    with x265_processes._lock:  # the worker waiting for the next piece dies (as when x265 crashes)
+        idle = list(x265_processes._idle)
+    assert idle
+    for worker in idle:
+        worker.process.kill()
+        worker.process.wait()
+    assert x265_processes.encode(frames, "gray10le", options) == expected
+
+
+def test_a_hung_x265_worker_is_killed_and_reported_after_the_last_attempt():
+    from gscodec_shac.codec.grid import x265_processes
+
+    frames = list(_x265_planes()[:1])
+    options = {"preset": "slow", "x265-params": "qp=30:info=0:log-level=error:frame-threads=1"}
+    with pytest.raises(x265_processes.X265WorkerError, match="3 times: no result after 0 s"):
+        x265_processes.encode(frames, "gray10le", options, timeout=1e-4)
+
+
+def test_x265_refusing_its_settings_in_a_worker_is_the_same_clear_error(monkeypatch):
+    from gscodec_shac.codec.grid import x265_processes
+
+    monkeypatch.setenv(x265_processes.ENV, "1")
+    with pytest.raises(ValidationError, match="x265 refused the settings"):
+        x265_processes.encode(list(_x265_planes()[:1]), "gray10le", {"preset": "no-such-preset", "x265-params": "qp=30:log-level=error"})

@@ -33,7 +33,8 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from gscodec_shac.atomic import check_outputs
-    from gscodec_shac.rd.report import bd_label, bd_table, write_report
+    from gscodec_shac.rd.curves import bd_label
+    from gscodec_shac.rd.report import bd_table, write_report
     from gscodec_shac.rd.results import load_results
 
     results = Path(args.results)

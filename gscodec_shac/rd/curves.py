@@ -56,3 +56,8 @@ def curves(rows: list[dict[str, Any]]) -> dict[tuple[str, str], Curve]:
     for curve in out.values():
         curve.rows.sort(key=lambda r: num(r.get("bytes")))
     return out
+
+
+def bd_label(entry: dict[str, Any]) -> str:
+    """A BD row's method: ``shac-auto``, or ``shac-auto vs shac-auto-nosh`` when measured against its own anchor."""
+    return f"{entry['method']} vs {entry['anchor']}" if entry.get("compared") else entry["method"]

@@ -16,9 +16,8 @@ import math
 from pathlib import Path
 from typing import Any
 
-from gscodec_shac.rd.curves import num, ordered, short_rate_point
+from gscodec_shac.rd.curves import bd_label, num, ordered, short_rate_point
 from gscodec_shac.rd.renders import reference_paths, run_render_path
-from gscodec_shac.rd.report import bd_label
 
 #: Rate points shown per method: the lowest, middle and highest size.
 SHOWN_POINTS = 3

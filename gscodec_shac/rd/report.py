@@ -22,7 +22,7 @@ from typing import Any
 from gscodec_shac.rd.bd import bd_quality, bd_rate, opposite_sign_reason
 from gscodec_shac.atomic import write_atomic, write_json
 from gscodec_shac.rd.cache import DURABLE
-from gscodec_shac.rd.curves import Curve, curves, num, ordered, short_rate_point
+from gscodec_shac.rd.curves import Curve, bd_label, curves, num, ordered, short_rate_point
 from gscodec_shac.rd.plots import plot_scene
 from gscodec_shac.rd.results import load_results
 
@@ -178,11 +178,6 @@ def kept_cell(row: dict[str, Any]) -> str:
     elif num(settings.get("min_opacity")) > 0.0:
         notes.append(f"opacity >= {num(settings['min_opacity']):g}")
     return f"{kept:,.0f}" + (f" ({', '.join(notes)})" if notes else "")
-
-
-def bd_label(entry: dict[str, Any]) -> str:
-    """A BD row's method: ``shac-auto``, or ``shac-auto vs shac-auto-nosh`` when measured against its own anchor."""
-    return f"{entry['method']} vs {entry['anchor']}" if entry.get("compared") else entry["method"]
 
 
 def bd_markdown(table: list[dict[str, Any]], scene: str) -> list[str]:

@@ -41,6 +41,7 @@ from typing import Iterator
 import av
 import numpy as np
 
+from gscodec_shac.codec.grid import x265_processes
 from gscodec_shac.codec.grid.base import EncodeParts, GridCodec, PlaneSink, join_chunks, register_codec, split_chunks
 from gscodec_shac.errors import BitstreamError, CodecUnavailableError, ValidationError
 
@@ -130,7 +131,8 @@ class HevcCodec(GridCodec):
         return parts, lambda streams: head + join_chunks(streams)
 
     def _encode_stream(self, frames: list[np.ndarray], pix_fmt: str, qp: int | None, extra: str) -> bytes:
-        """Encode frames ((H, W) or (3, H, W) arrays) into one Annex-B stream."""
+        """Encode frames ((H, W) or (3, H, W) arrays) into one Annex-B stream, in an x265 worker
+        process (:mod:`.x265_processes`) unless ``GSCODEC_X265_PROCESSES=0``."""
         rate = f"qp={int(qp)}:ipratio=1:pbratio=1" if qp is not None else "lossless=1"
         params = f"{rate}:{_QUIET}:frame-threads=1{extra}"
         if self.threads is not None:
@@ -138,20 +140,9 @@ class HevcCodec(GridCodec):
         options = {"preset": self.preset, "x265-params": params}
         if self.tune is not None:
             options["tune"] = self.tune
-        height, width = frames[0].shape[-2:]
-        try:
-            with X265Encoder(width, height, pix_fmt, options) as encoder:
-                packets = []
-                for index, array in enumerate(frames):
-                    frame = _frame_from_planes(array.reshape((-1, height, width)), pix_fmt)
-                    frame.pts = index
-                    packets += encoder.encode(frame)
-                packets += encoder.encode(None)
-        except av.FFmpegError as exc:
-            raise ValidationError(
-                f"hevc: x265 refused the settings {options} for a {width}x{height} {pix_fmt} frame: {exc}"
-            ) from None
-        return b"".join(bytes(packet) for packet in packets)
+        if x265_processes.enabled():
+            return x265_processes.encode(frames, pix_fmt, options)
+        return encode_frames(frames, pix_fmt, options)
 
     # ------------------------------------------------------------------ decode
     def decode(self, data: bytes, shape: tuple[int, int, int], bit_depth: int) -> np.ndarray:
@@ -308,6 +299,24 @@ def _decoded_frames(stream: bytes, index: int, threads: int = 1) -> Iterator[av.
         yield from ctx.decode(None)
     except (av.FFmpegError, ValueError) as exc:
         raise BitstreamError(f"hevc stream {index} is corrupt: {exc}") from None
+
+
+def encode_frames(frames: list[np.ndarray], pix_fmt: str, options: dict[str, str]) -> bytes:
+    """One x265 stream of ``frames`` ((H, W) or (3, H, W) arrays) with the codec ``options``."""
+    height, width = frames[0].shape[-2:]
+    try:
+        with X265Encoder(width, height, pix_fmt, options) as encoder:
+            packets = []
+            for index, array in enumerate(frames):
+                frame = _frame_from_planes(array.reshape((-1, height, width)), pix_fmt)
+                frame.pts = index
+                packets += encoder.encode(frame)
+            packets += encoder.encode(None)
+    except av.FFmpegError as exc:
+        raise ValidationError(
+            f"hevc: x265 refused the settings {options} for a {width}x{height} {pix_fmt} frame: {exc}"
+        ) from None
+    return b"".join(bytes(packet) for packet in packets)
 
 
 # x265_encoder_open fills process-wide tables (x265_setup_primitives: "if the SAD

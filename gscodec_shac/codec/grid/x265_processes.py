@@ -1,0 +1,157 @@
+"""x265 encodes in worker processes: one encoder per process, a crashed or hung one re-run.
+
+libx265 has races between encoders of one process and inside an encoder's lookahead
+(docs/reliability.md "Known gaps": a segfault in CI, a segfault and a hang in stress loops;
+x265's tracker has an open lookahead race). The encode scheduler runs two x265 encodes at
+once, so each runs in a worker process of its own: ``python -m
+gscodec_shac.codec.grid.x265_worker``, started on first use, kept idle for the next piece
+and ended when this process exits (or when its stdin closes). Requests and replies are
+length-prefixed pickles on the worker's stdin and stdout; no ``multiprocessing``, so the
+caller's ``__main__`` is never imported again. A worker that dies, or a piece that runs far
+past its expected time, is replaced and the piece coded again: x265 at a fixed QP with one
+frame thread writes the same bytes every time, so a re-run changes only the wall time.
+
+``GSCODEC_X265_PROCESSES=0`` codes in the calling process instead (the same bytes).
+"""
+
+from __future__ import annotations
+
+import atexit
+import os
+import pickle
+import select
+import struct
+import subprocess
+import sys
+import threading
+import time
+from typing import Any
+
+from gscodec_shac.errors import GscodecError
+
+#: Environment variable: ``0`` (or ``off``/``no``/``false``) codes x265 streams in-process.
+ENV = "GSCODEC_X265_PROCESSES"
+#: Attempts per piece (the first and two re-runs).
+ATTEMPTS = 3
+#: Seconds a piece may run before its worker is thought hung: this much, plus PER_SAMPLE each.
+BASE_TIMEOUT = 120.0
+PER_SAMPLE = 20e-6  # ~10x x265 `slow`'s time per sample on this 2-core machine
+_LENGTH = struct.Struct("<Q")
+
+
+class X265WorkerError(GscodecError):
+    """x265 failed in its worker process on every attempt."""
+
+
+class _WorkerDied(Exception):
+    pass
+
+
+def enabled() -> bool:
+    """Whether x265 streams are coded in worker processes (the default)."""
+    return os.environ.get(ENV, "1").strip().lower() not in ("0", "off", "no", "false")
+
+
+class _Worker:
+    """One ``x265_worker`` process and its pipes."""
+
+    def __init__(self) -> None:
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "gscodec_shac.codec.grid.x265_worker"],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=None, close_fds=True,
+        )
+
+    def call(self, request: Any, timeout: float) -> Any:
+        """Send ``request``; the unpickled reply, or _WorkerDied / TimeoutError."""
+        payload = pickle.dumps(request, protocol=pickle.HIGHEST_PROTOCOL)
+        try:
+            self.process.stdin.write(_LENGTH.pack(len(payload)))  # type: ignore[union-attr]
+            self.process.stdin.write(payload)  # type: ignore[union-attr]
+            self.process.stdin.flush()  # type: ignore[union-attr]
+        except (BrokenPipeError, OSError) as exc:
+            raise _WorkerDied(f"could not send the piece ({exc})") from None
+        deadline = time.monotonic() + timeout
+        (size,) = _LENGTH.unpack(self._read(_LENGTH.size, deadline))
+        return pickle.loads(self._read(size, deadline))
+
+    def _read(self, size: int, deadline: float) -> bytes:
+        stdout = self.process.stdout
+        fd = stdout.fileno()  # type: ignore[union-attr]
+        parts, got = [], 0
+        while got < size:
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([fd], [], [], left)[0]:
+                raise TimeoutError
+            data = os.read(fd, min(size - got, 1 << 22))
+            if not data:
+                raise _WorkerDied(f"worker process ended (exit status {self.process.wait()})")
+            parts.append(data)
+            got += len(data)
+        return b"".join(parts)
+
+    def close(self, kill: bool = False) -> None:
+        if kill:
+            self.process.kill()
+        else:
+            try:
+                self.process.stdin.close()  # type: ignore[union-attr]
+            except OSError:
+                pass
+        try:
+            self.process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+        self.process.stdout.close()  # type: ignore[union-attr]
+
+
+_lock = threading.Lock()
+_idle: list[_Worker] = []
+
+
+def _take() -> _Worker:
+    with _lock:
+        if _idle:
+            return _idle.pop()
+    return _Worker()
+
+
+def _give_back(worker: _Worker) -> None:
+    with _lock:
+        _idle.append(worker)
+
+
+def encode(frames: list, pix_fmt: str, options: dict[str, str], timeout: float | None = None) -> bytes:
+    """:func:`.hevc.encode_frames` in a worker process, re-run on a fresh worker if one dies or hangs.
+
+    Errors the encode itself raises (x265 refusing settings) come back as they are.
+    """
+    samples = sum(int(f.size) for f in frames)
+    limit = timeout if timeout is not None else BASE_TIMEOUT + PER_SAMPLE * samples
+    failures = []
+    for _ in range(ATTEMPTS):
+        worker = _take()
+        try:
+            status, value = worker.call((frames, pix_fmt, options), limit)
+        except _WorkerDied as exc:
+            failures.append(str(exc))
+            worker.close(kill=True)
+            continue
+        except TimeoutError:
+            failures.append(f"no result after {limit:.0f} s")
+            worker.close(kill=True)
+            continue
+        _give_back(worker)
+        if status == "error":
+            raise value
+        return value
+    raise X265WorkerError(f"x265 failed in its worker process {ATTEMPTS} times: {'; '.join(failures)}")
+
+
+@atexit.register
+def shutdown() -> None:
+    """End the idle worker processes (new ones start on the next :func:`encode`)."""
+    with _lock:
+        workers, _idle[:] = list(_idle), []
+    for worker in workers:
+        worker.close()
