@@ -9,8 +9,6 @@ for any radius.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import numpy as np
 from numba import njit, prange
 
@@ -44,55 +42,49 @@ def _src_index(j: int, n: int, circular: int) -> int:
 
 
 @njit(cache=True, fastmath=True)
-def _blur_line(src, dst, base, line_len, step, half, alpha, beta, circular, ranges):
-    """Blur one line: cell ``i`` is row ``base + i*step`` of the (cells, K) arrays; only the
-    channels of the (R, 2) ``[start, stop)`` ``ranges`` are read and written (each channel's sums
-    are its own, so a channel comes out the same whichever others are blurred with it)."""
+def _blur_line(src, dst, base, line_len, step, half, alpha, beta, circular):
+    """Blur one line: cell ``i`` is row ``base + i*step`` of the (cells, K) arrays."""
     k = src.shape[1]
     s0 = np.zeros(k, dtype=np.float64)
     s1 = np.zeros(k, dtype=np.float64)
     s2 = np.zeros(k, dtype=np.float64)
-    n_ranges = ranges.shape[0]
     for d in range(-half, half + 1):
         row = base + _src_index(d, line_len, circular) * step
-        for r in range(n_ranges):
-            for c in range(ranges[r, 0], ranges[r, 1]):
-                v = src[row, c]
-                s0[c] += v
-                s1[c] += d * v
-                s2[c] += d * d * v
+        for c in range(k):
+            v = src[row, c]
+            s0[c] += v
+            s1[c] += d * v
+            s2[c] += d * d * v
     h1 = half + 1
     for i in range(line_len):
         out = base + i * step
-        for r in range(n_ranges):
-            for c in range(ranges[r, 0], ranges[r, 1]):
-                dst[out, c] = alpha * s0[c] - beta * s2[c]
+        for c in range(k):
+            dst[out, c] = alpha * s0[c] - beta * s2[c]
         if i + 1 == line_len:
             break
         # re-centre on i + 1, then drop cell i - half and add cell i + half + 1
         r_old = base + _src_index(i - half, line_len, circular) * step
         r_new = base + _src_index(i + half + 1, line_len, circular) * step
-        for r in range(n_ranges):
-            for c in range(ranges[r, 0], ranges[r, 1]):
-                a0 = s0[c]
-                a1 = s1[c]
-                v_old = src[r_old, c]
-                v_new = src[r_new, c]
-                s2[c] += -2.0 * a1 + a0 - h1 * h1 * v_old + half * half * v_new
-                s1[c] = a1 - a0 + h1 * v_old + half * v_new
-                s0[c] = a0 - v_old + v_new
+        for c in range(k):
+            a0 = s0[c]
+            a1 = s1[c]
+            v_old = src[r_old, c]
+            v_new = src[r_new, c]
+            s2[c] += -2.0 * a1 + a0 - h1 * h1 * v_old + half * half * v_new
+            s1[c] = a1 - a0 + h1 * v_old + half * v_new
+            s0[c] = a0 - v_old + v_new
 
 
 @njit(parallel=True, cache=True)
-def _blur_lines_parallel(src, dst, n_lines, line_len, line_stride, step, half, alpha, beta, circular, ranges):
+def _blur_lines_parallel(src, dst, n_lines, line_len, line_stride, step, half, alpha, beta, circular):
     for line in prange(n_lines):
-        _blur_line(src, dst, line * line_stride, line_len, step, half, alpha, beta, circular, ranges)
+        _blur_line(src, dst, line * line_stride, line_len, step, half, alpha, beta, circular)
 
 
 @njit(cache=True)
-def _blur_lines_serial(src, dst, n_lines, line_len, line_stride, step, half, alpha, beta, circular, ranges):
+def _blur_lines_serial(src, dst, n_lines, line_len, line_stride, step, half, alpha, beta, circular):
     for line in range(n_lines):
-        _blur_line(src, dst, line * line_stride, line_len, step, half, alpha, beta, circular, ranges)
+        _blur_line(src, dst, line * line_stride, line_len, step, half, alpha, beta, circular)
 
 
 #: Grids with at least this many cells are blurred on all threads.
@@ -107,42 +99,26 @@ def blur_grid(
     border_y: str = "reflect",
     border_x: str = "reflect",
     *,
-    channels: Sequence[tuple[int, int]] | None = None,
     out: np.ndarray | None = None,
     tmp: np.ndarray | None = None,
 ) -> np.ndarray:
     """Separable near-Gaussian blur of (H*W, K) float32 cells; kernel sizes odd, sigma = size.
 
-    ``channels``: ``[start, stop)`` ranges of the channels to blur (default all); the others of
-    ``out`` are left as they are. ``out`` / ``tmp``: (H*W, K) float32 buffers to write the result
-    and the row pass into (reused by a caller that blurs many times: no fresh pages per blur).
-    A blurred channel is the same, bit for bit, whichever channels are blurred with it.
+    ``out`` / ``tmp``: (H*W, K) float32 buffers for the result and the row pass, for a caller that
+    blurs many times (no fresh pages per blur).
     """
     h, w = shape
-    k = cells.shape[1]
     tmp = np.empty_like(cells) if tmp is None else tmp
     out = np.empty_like(cells) if out is None else out
-    ranges = _merged(np.array([(0, k)] if channels is None else list(channels), dtype=np.int64).reshape(-1, 2))
     half_x, half_y = size_x // 2, size_y // 2
     ax, bx = quadratic_weights(half_x, float(size_x))
     ay, by = quadratic_weights(half_y, float(size_y))
     lines = _blur_lines_parallel if h * w >= PARALLEL_CELLS else _blur_lines_serial
-    lines(cells, tmp, h, w, w, 1, half_x, ax, bx, BORDERS[border_x], ranges)
+    lines(cells, tmp, h, w, w, 1, half_x, ax, bx, BORDERS[border_x])
     # columns in strips of s adjacent cells: each step along a column reads s*K contiguous floats
     s = max(d for d in (8, 4, 2, 1) if w % d == 0)
+    k = cells.shape[1]
     strip_in = tmp.reshape(h * (w // s), s * k)
     strip_out = out.reshape(h * (w // s), s * k)
-    strip_ranges = _merged((ranges[None, :, :] + k * np.arange(s, dtype=np.int64)[:, None, None]).reshape(-1, 2))
-    lines(strip_in, strip_out, w // s, h, 1, w // s, half_y, ay, by, BORDERS[border_y], strip_ranges)
+    lines(strip_in, strip_out, w // s, h, 1, w // s, half_y, ay, by, BORDERS[border_y])
     return out
-
-
-def _merged(ranges: np.ndarray) -> np.ndarray:
-    """Sorted ``[start, stop)`` ranges with touching ones joined (longer inner loops)."""
-    out: list[list[int]] = []
-    for start, stop in sorted(map(tuple, ranges.tolist())):
-        if out and start <= out[-1][1]:
-            out[-1][1] = max(out[-1][1], stop)
-        elif stop > start:
-            out.append([start, stop])
-    return np.array(out, dtype=np.int64).reshape(-1, 2)

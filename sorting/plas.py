@@ -117,28 +117,19 @@ def _block_side(size: int, side: int, min_block: int, scale: float = 1.0) -> int
 class PlasState:
     """The grid being sorted: cell vectors (cells, K) float32 and the row in each cell (-1 = empty).
 
-    ``channels``: how many leading channels hold features (the others are zero but the item
-    flag); ``target`` / ``scratch``: the blur's buffers, allocated once and reused for every
-    radius (fresh 64 MB pages per radius were a tenth of a 1M-cell sort's CPU time).
+    ``target`` / ``scratch``: the blur's buffers, allocated once and reused for every radius
+    (no fresh 64 MB pages per radius at 1M cells).
     """
 
     feat: np.ndarray
     idx: np.ndarray
     shape: tuple[int, int]
-    channels: int = -1
     target: np.ndarray | None = None
     scratch: np.ndarray | None = None
 
     @property
     def valid(self) -> np.ndarray:
         return self.idx >= 0
-
-    def blurred_channels(self) -> list[tuple[int, int]]:
-        """The channels whose blur is not known to be zero: the features, and the item flag
-        (channel K-2) when some cells are empty (it weights the target, :func:`blurred_target`)."""
-        k = self.feat.shape[1]
-        features = k - 2 if self.channels < 0 else self.channels
-        return [(0, features)] if self.valid.all() else [(0, features), (k - 2, k - 1)]
 
 
 def make_state(features: np.ndarray, shape: tuple[int, int], cells: np.ndarray) -> PlasState:
@@ -157,7 +148,7 @@ def make_state(features: np.ndarray, shape: tuple[int, int], cells: np.ndarray) 
     feat[cells, k - 2] = 1.0
     idx = np.full(h * w, -1, dtype=np.int64)
     idx[cells] = np.arange(n, dtype=np.int64)
-    return PlasState(feat, idx, (h, w), channels=c)
+    return PlasState(feat, idx, (h, w))
 
 
 def blurred_target(state: PlasState, size_y: int, size_x: int, sched: PlasSchedule) -> np.ndarray:
@@ -166,12 +157,10 @@ def blurred_target(state: PlasState, size_y: int, size_x: int, sched: PlasSchedu
     Channel ``K-2`` of the target is 0, channel ``K-1`` its squared norm (see :func:`make_state`).
     """
     h, w = state.shape
-    if state.target is None:  # zeroed once: the channels never blurred stay zero
-        state.target, state.scratch = np.zeros_like(state.feat), np.empty_like(state.feat)
-    # only the feature channels (and the item flag when cells are empty) can blur to non-zero
-    # values; a channel's blur is the same whichever others are blurred with it (blur.py)
+    if state.target is None:
+        state.target, state.scratch = np.empty_like(state.feat), np.empty_like(state.feat)
     blurred = blur_grid(state.feat, (h, w), size_y, size_x, sched.border_y, sched.border_x,
-                        channels=state.blurred_channels(), out=state.target, tmp=state.scratch)
+                        out=state.target, tmp=state.scratch)
     return finish_target(blurred, state)
 
 
