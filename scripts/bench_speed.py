@@ -13,10 +13,11 @@ its children, from ``os.wait4``) and peak RSS:
   file (skipped, with a line saying why, when node or the tool is absent);
 
 plus ``startup``: ``gscodec-shac decode`` of a 300-Gaussian fixture stream (start-up cost).
-``--baseline ../main`` runs the encode and every decode step under that checkout too, right
-before ours (the baseline's stream is overwritten by ours; the two streams' sha256 are compared
-and printed); ``--repeat R`` runs each paired encode R times, the baseline first in odd rounds
-and ours first in even ones (the load of a shared machine drifts).
+``--baseline ../main`` runs the encode, every decode step and the target encode under that
+checkout too, right before ours (the baseline's stream is overwritten by ours; the two fixed
+encodes' sha256 are compared and printed), and prints the baseline's target / encode ratio
+beside ours. ``--repeat R`` runs each paired encode R times, the baseline first in odd rounds and
+ours first in even ones (the load of a shared machine drifts).
 Ratios (target / encode, decode / spz_read, encode / spz_write) are printed; all rows go
 to ``OUT/bench_speed.json`` and ``.csv`` with the load average at each step.
 
@@ -91,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-peer", action="store_true", help="skip splat-transform")
     parser.add_argument("--nice", type=int, default=5, help="niceness of the measured processes")
     parser.add_argument("--baseline", type=Path,
-                        help="another checkout: its encode and decodes run right before ours (paired)")
+                        help="another checkout: its encodes and decodes run right before ours (paired)")
     parser.add_argument("--repeat", type=int, default=1,
                         help="paired encodes per size (with --baseline: alternating which runs first)")
     args = parser.parse_args(argv)
@@ -143,11 +144,14 @@ def main(argv: list[str] | None = None) -> int:
         paired_step(size, "decode_arrays", [sys.executable, "-c", DECODE_ARRAYS, str(gsc)])
         decode = paired_step(size, "decode", [*cli, "decode", str(gsc), str(dec), "--force"])
         if not args.no_target:
-            target = record(size, "target_bpg", measured(
-                [*cli, "encode", str(ply), str(args.out / size / f"s{size}_target.gsc"), "--target-bpg",
-                 str(args.target_bpg), "--force"], args.nice))
-            print(f"{size:>5} ratio target / encode: {target['wall_s'] / enc['wall_s']:.2f} (wall), "
-                  f"{target['cpu_s'] / enc['cpu_s']:.2f} (cpu)")
+            aimed_gsc = args.out / size / f"s{size}_target.gsc"
+            paired_step(size, "target_bpg", [*cli, "encode", str(ply), str(aimed_gsc), "--target-bpg",
+                                             str(args.target_bpg), "--force"])
+            for suffix in ("@baseline",) * (args.baseline is not None) + ("",):
+                fixed, aimed = (next(r for r in reversed(rows) if r["size"] == size and r["step"] == step + suffix)
+                                for step in ("encode", "target_bpg"))
+                print(f"{size:>5} ratio target / encode{suffix}: {aimed['wall_s'] / fixed['wall_s']:.2f} (wall), "
+                      f"{aimed['cpu_s'] / fixed['cpu_s']:.2f} (cpu)")
         if peer is not None:
             spz = args.out / size / f"s{size}.spz"
             write = record(size, "spz_write", measured([str(peer), "-w", "-q", str(ply), str(spz)], args.nice))

@@ -18,6 +18,7 @@ and compares the hashes (golden hashes). Run it once per container version, neve
     python scripts/make_stream_fixtures.py --version 2.0
     python scripts/make_stream_fixtures.py --version 2.1
     python scripts/make_stream_fixtures.py --version 2.2
+    python scripts/make_stream_fixtures.py --version 2.3
 """
 
 from __future__ import annotations
@@ -73,7 +74,15 @@ CASES_V22: dict[str, dict] = {
     "dynamic_rp2_net4_heads8": {"input": "input_sh3.ply", "rate_point": "paper_table3:rp2", "sh": "none",
                                 "params": {}, "network": "network_small.npz", "arch": SMALL_ARCH, "network_bits": 4},
 }
-CASES = {"1.0": CASES_V1, "2.0": CASES_V2, "2.1": CASES_V21, "2.2": CASES_V22}
+#: Container 2.3 cases: per-Gaussian SH degree (feature sh_dc_only; ``dc_only_share`` overrides the
+#: rate point's): the coded Gaussians' SH on a Z-ordered grid (set-coded positions) and on a raster one.
+CASES_V23: dict[str, dict] = {
+    "ladder_rp4_pca_dc_only": {"input": "input_sh3.ply", "rate_point": "shac_ladder:rp4", "sh": "pca",
+                               "params": {"energy_retention": 0.97}, "dc_only_share": 0.5},
+    "custom_lossless_drop_dc_only": {"input": "input_sh3.ply", "rate_point": "custom_points.yaml:lossless_drop",
+                                     "sh": None, "params": {}, "dc_only_share": 0.3},
+}
+CASES = {"1.0": CASES_V1, "2.0": CASES_V2, "2.1": CASES_V21, "2.2": CASES_V22, "2.3": CASES_V23}
 
 
 def write_inputs() -> None:
@@ -118,12 +127,14 @@ def network_inputs(case: dict) -> tuple:
 def encode_case(case: dict, workers: int = 1) -> bytes:
     """The stream of one case, encoded by the current code (no progress)."""
     from gscodec_shac.io.ply import read_ply
-    from gscodec_shac.codec import Encoder
+    from gscodec_shac.codec import Encoder, load_rate_point
 
     cloud = read_ply(FIXTURES / case["input"])
     rate_point = case["rate_point"]
     if rate_point.startswith("custom_points.yaml"):
         rate_point = str(FIXTURES / rate_point)
+    if "dc_only_share" in case:
+        rate_point = load_rate_point(rate_point).with_overrides(dc_only_share=case["dc_only_share"])
     encoder = Encoder(rate_point, sh_stage=case["sh"], sort=case.get("sort"),
                       sh_params=case["params"] or None, workers=workers)
     stream = encoder.encode(cloud)

@@ -4,10 +4,12 @@ Per scene and quality measure (PSNR against the photos, ``psnr_gt``; against the
 uncompressed model, ``psnr_ref``):
 
 * **BD-rates against the baseline** over the quality range both curves cover (PCHIP,
-  :mod:`gscodec_shac.rd.bd`), for every other curve method;
+  :mod:`gscodec_shac.rd.bd`), for every other curve method, and of SHAC-auto against the
+  same controller without an SH stage (``shac-auto-nosh``): the SH stage's own gain;
 * **our size at an anchor's quality**: for SPZ and SOG (one point each), the size of
   each of our curves at the anchor's quality (log-size interpolated linearly in PSNR
-  between the two curve points around it), as a ratio to the anchor's size; ``-`` when
+  between the two curve points around it), as a ratio to the anchor's size, with the
+  Gaussians those two points kept (``n_decoded``: what the pruning left); ``-`` when
   the anchor's quality is outside the curve.
 
     python scripts/rate_control_tables.py ../outputs/rd/rate_control > /tmp/tables.md
@@ -32,6 +34,8 @@ from gscodec_shac.rd.results import load_results  # noqa: E402
 METRICS = {"psnr_gt": "PSNR vs photos", "psnr_ref": "PSNR vs uncompressed"}
 ANCHORS = ("spz", "sog")
 BASELINE = "baseline"
+#: extra BD-rates: method -> the curve it is measured against
+PAIRS = {"shac-auto": "shac-auto-nosh"}
 
 
 def curves(rows: list[dict]) -> dict[str, dict[str, list[tuple[float, dict]]]]:
@@ -46,15 +50,31 @@ def curves(rows: list[dict]) -> dict[str, dict[str, list[tuple[float, dict]]]]:
     return out
 
 
-def size_at(points: list[tuple[float, dict]], metric: str, quality: float) -> float | None:
-    """The curve's size at ``quality``: log-size linear in PSNR between the bracketing points."""
-    pts = [(q, b) for b, r in points if math.isfinite(q := _num(r.get(metric)))]
-    for (q0, b0), (q1, b1) in zip(pts, pts[1:]):
+def size_at(points: list[tuple[float, dict]], metric: str, quality: float) -> tuple[float, list[dict]] | None:
+    """The curve's size at ``quality`` (log-size linear in PSNR between the bracketing points) and
+    those two points' rows."""
+    pts = [(q, b, r) for b, r in points if math.isfinite(q := _num(r.get(metric)))]
+    for (q0, b0, r0), (q1, b1, r1) in zip(pts, pts[1:]):
         lo, hi = sorted((q0, q1))
         if lo <= quality <= hi and q1 != q0:
             t = (quality - q0) / (q1 - q0)
-            return float(np.exp(np.log(b0) + t * (np.log(b1) - np.log(b0))))
+            return float(np.exp(np.log(b0) + t * (np.log(b1) - np.log(b0)))), [r0, r1]
     return None
+
+
+def kept(rows: list[dict]) -> str:
+    """The Gaussians the rows' decoded models have: ``45,000`` or ``45,000-60,000``."""
+    counts = sorted({int(_num(r.get("n_decoded"))) for r in rows if math.isfinite(_num(r.get("n_decoded")))})
+    if not counts:
+        return "?"
+    return f"{counts[0]:,}" if len(counts) == 1 else f"{counts[0]:,}-{counts[-1]:,}"
+
+
+def bd_cell(anchor: list[tuple[float, dict]], points: list[tuple[float, dict]], metric: str) -> str:
+    """BD-rate of ``points`` against ``anchor`` on ``metric`` as a table cell."""
+    result = bd_rate([b for b, _ in anchor], [_num(r.get(metric)) for _, r in anchor],
+                     [b for b, _ in points], [_num(r.get(metric)) for _, r in points])
+    return f"{result.value:+.1f}%" if result.ok else f"n/a ({result.reason})"
 
 
 def tables(rows: list[dict]) -> str:
@@ -70,15 +90,15 @@ def tables(rows: list[dict]) -> str:
             bpg = [8 * b / n for b, _ in pts]
             cells = []
             for metric in METRICS:
-                if method == BASELINE or BASELINE not in methods:
-                    cells.append("-")
-                    continue
-                base = methods[BASELINE]
-                result = bd_rate([b for b, _ in base], [_num(r.get(metric)) for _, r in base],
-                                 [b for b, _ in pts], [_num(r.get(metric)) for _, r in pts])
-                cells.append(f"{result.value:+.1f}%" if result.ok else f"n/a ({result.reason})")
+                missing = method == BASELINE or BASELINE not in methods
+                cells.append("-" if missing else bd_cell(methods[BASELINE], pts, metric))
             lines.append(f"| {method} | {len(pts)} | {min(bpg):.0f}-{max(bpg):.0f} | " + " | ".join(cells) + " |")
         lines.append("")
+        for method, anchor in PAIRS.items():
+            if method in methods and anchor in methods:
+                lines += [f"{method} against {anchor} (the SH stage's own gain): BD-rate "
+                          + ", ".join(f"{bd_cell(methods[anchor], methods[method], m)} ({v})" for m, v in METRICS.items()),
+                          ""]
         times = {m: np.median([_num(r.get("encode_s")) for _, r in pts]) for m, pts in methods.items()}
         lines += ["Encode seconds (median over the curve's points; on a shared 2-core machine): "
                   + ", ".join(f"{m} {t:.1f}" for m, t in times.items()), ""]
@@ -88,13 +108,14 @@ def tables(rows: list[dict]) -> str:
             size, row = methods[anchor][0]
             head = (f"At {anchor.upper()}'s quality ({8 * size / n:.1f} bits/G; "
                     + ", ".join(f"{_num(row.get(m)):.2f} dB {v}" for m, v in METRICS.items()) + ")")
-            lines += [head + ": our size / its size", "",
+            lines += [head + ": our size / its size (Gaussians kept by the two points around it)", "",
                       "| method | " + " | ".join(METRICS.values()) + " |", "|---|" + "---|" * len(METRICS)]
             for method in curve_methods:
                 cells = []
                 for metric in METRICS:
-                    ours = size_at(methods[method], metric, _num(row.get(metric)))
-                    cells.append(f"{ours / size:.2f}x ({8 * ours / n:.1f} bits/G)" if ours else "-")
+                    found = size_at(methods[method], metric, _num(row.get(metric)))
+                    cells.append(f"{found[0] / size:.2f}x ({8 * found[0] / n:.1f} bits/G; {kept(found[1])})"
+                                 if found else "-")
                 lines.append(f"| {method} | " + " | ".join(cells) + " |")
             lines.append("")
     return "\n".join(lines)

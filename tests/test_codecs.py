@@ -298,3 +298,32 @@ def test_hm_round_trip_when_installed():
     lossy = codec.encode(planes, 10, 22)
     # HM writes standard HEVC: the in-process decoder reads it too, and both agree.
     np.testing.assert_array_equal(codec.decode(lossy, planes.shape, 10), get_codec("hevc").decode(lossy, planes.shape, 10))
+
+
+def test_x265_encoders_opened_at_once_in_a_fresh_process_give_the_serial_bytes():
+    """x265 sets up process-wide tables when an encoder opens: threads opening at once must not race.
+
+    A fresh interpreter (nothing set up yet) starts eight encodes of three bit depths
+    at the same moment; each must give the bytes of the same encode run alone.
+    """
+    import subprocess
+    import sys
+
+    script = """
+import threading, numpy as np
+from gscodec_shac.codec.grid.hevc import HevcCodec, _X265_LIFECYCLE
+rng = np.random.default_rng(1)
+jobs = [(rng.integers(0, 2 ** b, size=(1, 48, 40), dtype=np.uint16), b) for b in (8, 10, 12) * 3][:8]
+barrier, out = threading.Barrier(len(jobs)), {}
+def run(i):
+    planes, bits = jobs[i]
+    barrier.wait()
+    out[i] = HevcCodec().encode(planes, bits, 24)
+threads = [threading.Thread(target=run, args=(i,)) for i in range(len(jobs))]
+[t.start() for t in threads]; [t.join() for t in threads]
+assert not _X265_LIFECYCLE.locked()
+print(all(out[i] == HevcCodec().encode(*jobs[i], 24) for i in range(len(jobs))))
+"""
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == "True"

@@ -32,7 +32,7 @@ from gscodec_shac.codec.grid.base import get_codec
 from gscodec_shac.codec.header import read_deformation, read_header
 from gscodec_shac.deform_arch import DeformArch
 from gscodec_shac.io.ply import read_ply
-from gscodec_shac.codec import Bitstream, Decoder, Encoder
+from gscodec_shac.codec import Bitstream, Decoder, Encoder, load_rate_point
 
 FIXTURES = Path(__file__).parent / "fixtures" / "streams"
 VERSIONS = sorted((p for p in FIXTURES.glob("v*") if p.is_dir()), key=lambda p: tuple(map(int, p.name[1:].split("."))))
@@ -86,6 +86,8 @@ def test_encoding_the_fixture_inputs_gives_the_golden_bytes(folder, name):
     installed = [get_codec(c["name"], **c["options"]).version() for c in header["codecs"]]
     if installed != case["codecs"]:
         pytest.skip(f"codec libraries differ from the fixture's ({installed} vs {case['codecs']}): bytes may differ")
+    if "dc_only_share" in case:
+        rate_point = load_rate_point(rate_point).with_overrides(dc_only_share=case["dc_only_share"])
     cloud = read_ply(FIXTURES / case["input"])
     for workers in (1, 2):
         encoder = Encoder(rate_point, sh_stage=case["sh"], sort=case.get("sort"), sh_params=case["params"] or None,

@@ -170,3 +170,47 @@ def test_importance_is_ranked_on_cameras_the_pruning_error_is_not_judged_on(cont
     judged = {view.name for view in controller.views}
     ranked = {view.name for view in controller.importance_views}
     assert ranked and not ranked & judged and ranked | judged == {c.name for c in small_scene.cameras}
+
+
+# ------------------------------------------------------------ reuse between encodes
+def test_a_recoded_trial_gives_the_bytes_of_a_fresh_encode(controller, small_cloud):
+    """A later trial takes its placement, SH features, position chunk and unchanged chunks from the
+    controller's cache and codes only the chunks whose QP moved: the bytes of a fresh encode."""
+    target = Target("bytes", 200 * small_cloud.num_gaussians / 8)
+    first = controller.plan(target)
+    moved = {"opacity": min(51, first.settings["opacity"] + 3), "sh": min(51, first.settings["sh"] + 2)}
+    second = controller._predict({**first.settings, **moved})
+    controller._encode(first, target)
+    before = set(controller._cache)
+    recoded = controller._encode(second, target)
+    new = {key[0] for key in set(controller._cache) - before}
+    assert new and all(name == "opacity" or name.startswith("sh") for name in new)  # only the moved chunks
+    for plan, stream in ((second, recoded), (first, controller._encode(first, target))):
+        fresh = Encoder(plan.rate_point, sh_stage=controller.stage_, fit_stage=False,
+                        importance=controller.importance_).encode(small_cloud)
+        fresh.header["rate_control"] = stream.header["rate_control"]
+        assert stream.to_bytes() == fresh.to_bytes()
+
+
+def test_the_fits_position_chunks_are_the_ones_an_encode_codes(controller, small_cloud):
+    from gscodec_shac.codec.encoder import position_set_cache_key
+    from gscodec_shac.codec.rate_control import POSITION_BITS
+
+    settings = controller.plan(Target("bytes", 200 * small_cloud.num_gaussians / 8)).settings
+    for bits in (POSITION_BITS[0], POSITION_BITS[-1]):
+        point = controller._rate_point({**settings, "positions": bits, "prune": 0})
+        seeded = controller._cache[position_set_cache_key(point, bits)]
+        assert len(seeded) == controller.models_["positions"].bytes[POSITION_BITS.index(bits)]
+        assert Encoder(point, sh_stage=controller.stage_, fit_stage=False).encode(small_cloud).chunk(
+            "positions").data == seeded
+
+
+def test_the_probe_has_a_fixed_size_whatever_the_clouds(monkeypatch):
+    from gscodec_shac.codec import rate_control
+    from gscodec_shac.synthetic import make_synthetic_scene
+
+    monkeypatch.setattr(rate_control, "PROBE_MIN", 500)
+    for n in (2_000, 40_000):  # version 5 probed 1/16 of a cloud above 16 x PROBE_MIN: 2,500 here
+        cloud = make_synthetic_scene(n, seed=1, n_cameras=1, width=8, height=8).cloud
+        rows = rate_control._probe_rows(cloud)
+        assert rows.size == 500 and np.unique(rows).size == 500

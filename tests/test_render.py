@@ -265,3 +265,20 @@ def test_bonsai_test_views_reproduce_the_trainers_psnr():
         camera = test[index]
         truth = load_image(camera.image_path, size=(camera.width, camera.height))
         assert abs(psnr(renderer.render(camera).image, truth) - expected[index]) < 1e-3
+
+
+def test_a_renderer_given_the_covariances_renders_the_same_images():
+    """The rate controller renders variants of a cloud (other colours, opacities, positions, a subset)
+    with the 3D covariances of the whole cloud's renderer: the images are the ones computed afresh."""
+    rng = np.random.default_rng(7)
+    cloud = random_cloud(rng, 300, 2)
+    whole = Renderer(cloud)
+    keep = np.sort(rng.choice(300, 170, replace=False))
+    moved = cloud.replace(means=cloud.means + 0.01, opacities=cloud.opacities - 0.3)
+    for variant, covariances in ((cloud.select(keep), whole.cov3[keep]), (moved, whole.cov3)):
+        given = Renderer(variant, covariances=covariances)
+        fresh = Renderer(variant)
+        for camera in cameras():
+            assert np.array_equal(given.render(camera).image, fresh.render(camera).image)
+    with pytest.raises(ValidationError, match="covariances have shape"):
+        Renderer(cloud, covariances=whole.cov3[:10])

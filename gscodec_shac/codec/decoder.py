@@ -25,7 +25,15 @@ from gscodec_shac.codec import quantize as qz
 from gscodec_shac.codec.attributes import ATTRIBUTES
 from gscodec_shac.codec.container import Bitstream, Chunk
 from gscodec_shac.codec.grid.base import GridCodec, get_codec
-from gscodec_shac.codec.header import AttributeEntry, ChunkPlan, StreamHeader, inflate, read_header, read_stage
+from gscodec_shac.codec.header import (
+    AttributeEntry,
+    ChunkPlan,
+    StreamHeader,
+    inflate,
+    read_dc_only,
+    read_header,
+    read_stage,
+)
 from gscodec_shac.codec.layout import occupied, occupied_cells, unpack_mask
 from gscodec_shac.codec.positions import decode_sorted_codes, morton_decode
 from gscodec_shac.errors import BitstreamError, CodecUnavailableError, GscodecError, MemoryLimitError
@@ -72,15 +80,22 @@ class Decoder:
         if view.padding == "mask":
             mask = unpack_mask(inflate(stream.chunk("grid_mask"), view.zlib_sizes["grid_mask"]), n, view.cells)
         stage = read_stage(stream, view) if view.sh is not None else None
+        dc_only = read_dc_only(stream, view)  # Gaussians coded without AC coefficients (codec/sh_degree.py)
 
         # The occupied cells, computed once, when the first decoded picture needs them: a header
         # declaring a huge grid over small pictures fails the codec's picture-size check first.
         cells = _Once(lambda: occupied_cells(view.padding, shape, n, mask))
+        grids = {name: (shape, n, cells) for name in view.attributes}
+        if dc_only is not None:  # the SH features of the other Gaussians are on a grid of their own
+            sh = view.sh
+            coded = n - sh.dc_only  # type: ignore[union-attr]
+            grids["sh"] = (sh.grid, coded, _Once(lambda: occupied_cells(sh.grid_padding, sh.grid, coded)))
         ycbcr = view.color == "ycbcr"
-        streamed = {name: _Dequantized(entry, n, cells, ycbcr) for name, entry in view.attributes.items()
+        streamed = {name: _Dequantized(entry, *grids[name][1:], ycbcr) for name, entry in view.attributes.items()
                     if entry.coding == "planes" and entry.quantizer is not None
                     and all(p.part == "all" for p in view.chunks if p.attribute == name)}
-        tasks = [_ChunkTask(plan, stream.chunk(plan.name), codecs[plan.codec], shape, streamed.get(plan.attribute))
+        tasks = [_ChunkTask(plan, stream.chunk(plan.name), codecs[plan.codec], grids[plan.attribute][0],
+                            streamed.get(plan.attribute))
                  for plan in view.chunks]
         # Largest chunks first (the SH grid dominates), so no worker is left with it at the end.
         biggest_first = sorted(range(len(tasks)), key=lambda i: -len(tasks[i].chunk.data))
@@ -98,8 +113,8 @@ class Decoder:
         values = {name: target.values() for name, target in streamed.items() if target.done is None}
         out = {**out, **{name: target.done for name, target in streamed.items() if target.done is not None}}
         values.update({
-            name: _assemble(entry, [(t, p) for t, p in zip(tasks, planes) if t.plan.attribute == name], shape, cells(),
-                            self.workers)
+            name: _assemble(entry, [(t, p) for t, p in zip(tasks, planes) if t.plan.attribute == name],
+                            grids[name][0], grids[name][2](), self.workers)
             for name, entry in view.attributes.items() if entry.coding == "planes" and name not in streamed
         })
         del planes, tasks, futures, streamed  # the coded planes are not needed past here (peak memory)
@@ -108,7 +123,7 @@ class Decoder:
         if view.sh is None:
             sh_rest = np.zeros((n, sh_index.num_rest_coeffs(degree), 3), dtype=np.float32)
         else:
-            features = values.pop("sh", np.zeros((n, 0)))
+            features = values.pop("sh", np.zeros((grids["sh"][1] if "sh" in grids else n, 0)))
             if view.sh.ycbcr:
                 features = qz.triplets_from_ycbcr(features)
             if not view.sh.lossless:
@@ -118,6 +133,9 @@ class Decoder:
             if view.sh.uses_dc:
                 sh_dc, dc_and_ac = dc_and_ac[:, :3], dc_and_ac[:, 3:]
             sh_rest = sh_index.sh_rest_from_ac(np.ascontiguousarray(dc_and_ac, dtype=np.float32))
+            if dc_only is not None:  # the DC-only Gaussians' AC coefficients are zero
+                coded, sh_rest = sh_rest, np.zeros((n, *sh_rest.shape[1:]), dtype=np.float32)
+                sh_rest[~dc_only] = coded
         return GaussianCloud(
             means=out["positions"], scales=out["scale"], quats=out["rotation"], opacities=out["opacity"][:, 0],
             sh_dc=sh_dc, sh_rest=sh_rest,

@@ -33,6 +33,7 @@ import numpy as np
 import gscodec_shac
 from gscodec_shac.camera import Camera
 from gscodec_shac.codec import quantize as qz
+from gscodec_shac.codec import sh_degree as degrees
 from gscodec_shac.codec.allocation import waterfill_qps
 from gscodec_shac.codec.attributes import ATTRIBUTES, SH_FEATURES_TRANSFORM
 from gscodec_shac.codec.container import Bitstream
@@ -205,6 +206,8 @@ class Encoder:
         self.views = list(views) if views else None
         self.importance = importance
         self._measured: tuple[GaussianCloud, np.ndarray] | None = None
+        self._dc_only: np.ndarray | None = None
+        self._dc_only_shape: tuple[int, int] = (0, 0)
 
     # ---------------------------------------------------------------- main
     def grid_order(self, cloud: GaussianCloud) -> GridOrder:
@@ -239,6 +242,7 @@ class Encoder:
         # the AC matrix is read in grid order, a block of rows at a time; with release_input the
         # model's other arrays are freed now (the grid-order cloud has its own), the AC matrix after the stage
         ac = GatheredRows(cloud.ac_matrix(), self.order_) if sh_degree else None
+        dc_only_weight = self._dc_only_weight(cloud, grid_cloud) if sh_degree else None
         cloud = None
         if release_input:
             self._measured = None  # the importance measurement holds the model too
@@ -269,10 +273,10 @@ class Encoder:
                                                          cell_rows, grid.shape, attr.groups, rows=rows)
                 values = None
             with self._timed("sh_stage"):
-                features = self._sh_features(stage, grid_cloud, ac)
+                features = self._sh_features(stage, grid_cloud, ac, dc_only_weight)
             ac = None
             if features is not None and features.shape[1]:
-                attributes["sh"], n_features = self._code_sh(stage, features, cell_rows, grid.shape)
+                attributes["sh"], n_features = self._code_sh(stage, features, *self._sh_grid(grid, cell_rows))
             features = grid_cloud = None  # the coders hold the planes only
             with self._timed("code"):
                 for job in optional_bar(self._jobs, self.progress, desc="encode", unit="chunk", leave=False):  # in queue order
@@ -295,6 +299,14 @@ class Encoder:
                 "uses_dc": bool(stage.uses_dc),
                 "ycbcr": bool(ycbcr and stage.ycbcr_applies(n_features)),
             }
+            if self._dc_only is not None and n_features:  # per-Gaussian SH degree (sh_degree.py)
+                packed, raw_size = degrees.flags_chunk(self._dc_only)
+                stream.add_chunk(degrees.CHUNK, packed, attribute=degrees.CHUNK, encoding="zlib",
+                                 raw_size=raw_size)
+                stream.require(degrees.FEATURE)
+                sh_header["dc_only"] = int(self._dc_only.sum())
+                sh_header["grid"] = {"height": self._dc_only_shape[0], "width": self._dc_only_shape[1],
+                                     "padding": degrees.sh_padding(padding)}
         stream.header = {
             "producer": f"gscodec-shac {gscodec_shac.__version__}",
             "num_gaussians": n,
@@ -328,6 +340,10 @@ class Encoder:
         share = self.rate_point.keep_share
         if share >= 1.0:
             return kept
+        return most_important(self._importance(cloud), kept, keep_count(cloud.num_gaussians, share))
+
+    def _importance(self, cloud: GaussianCloud) -> np.ndarray:
+        """The caller's render-based importance of each input Gaussian, or its measurement (once per cloud)."""
         importance = self.importance
         if importance is None:  # measured once per cloud (grid_order and encode both ask)
             if self._measured is None or self._measured[0] is not cloud:
@@ -336,7 +352,17 @@ class Encoder:
         elif np.shape(importance) != (cloud.num_gaussians,):
             raise ValidationError(f"importance has shape {np.shape(importance)}, expected one value per Gaussian "
                                   f"({cloud.num_gaussians:,})")
-        return most_important(np.asarray(importance, dtype=np.float64), kept, keep_count(cloud.num_gaussians, share))
+        return np.asarray(importance, dtype=np.float64)
+
+    def _dc_only_weight(self, cloud: GaussianCloud, grid_cloud: GaussianCloud) -> np.ndarray | None:
+        """What each grid-order Gaussian's AC energy is weighted by when choosing the DC-only ones
+        (rate point ``sh.dc_only_weight``); None when none is DC-only."""
+        rp = self.rate_point
+        if not rp.dc_only:
+            return None
+        if rp.dc_only_weight == "render":
+            return self._importance(cloud)[self.order_]
+        return grid_cloud.activated_opacities()
 
     def _work_cache_key(self, what: str) -> tuple | None:
         """The shared cache's key of ``what`` under this encode's pruning and sorting settings (None: no cache)."""
@@ -367,11 +393,39 @@ class Encoder:
         stage.progress = self.progress
         return stage
 
-    def _sh_features(self, stage: ShStage | None, cloud: GaussianCloud, ac: GatheredRows | None) -> np.ndarray | None:
+    def _sh_features(self, stage: ShStage | None, cloud: GaussianCloud, ac: GatheredRows | None,
+                     dc_only_weight: np.ndarray | None = None) -> np.ndarray | None:
         """The stage's features of the AC matrix ``ac`` in grid order (``cloud``: the grid-order cloud,
-        for the DC and positions)."""
+        for the DC and positions). With ``dc_only_weight`` the DC-only Gaussians are chosen
+        (:attr:`_dc_only`) and the stage sees, and gives the features of, the others only (:mod:`.sh_degree`)."""
+        self._dc_only = None
         if stage is None or ac is None:
             return None
+        if dc_only_weight is None:
+            return self._stage_features(stage, cloud, ac, "")
+        if stage.uses_dc:
+            raise ValidationError(f"SH stage {stage.name!r} codes the DC inside its features: it cannot leave "
+                                  f"Gaussians DC-only (sh.dc_only_share, sh.dc_only_energy)")
+        rp = self.rate_point
+        flags = degrees.dc_only_flags(degrees.ac_energy(ac, dc_only_weight), rp.dc_only_share, rp.dc_only_energy)
+        coded = np.flatnonzero(~flags)
+        features = self._stage_features(stage, cloud.select(coded), GatheredRows(ac.base, ac.index[coded]),
+                                        f"-dc{rp.dc_only_share}-{rp.dc_only_energy}-{rp.dc_only_weight}")
+        self._dc_only = flags
+        return features
+
+    def _sh_grid(self, grid: GridOrder, cell_rows: np.ndarray) -> tuple[np.ndarray, tuple[int, int]]:
+        """(cell rows, shape) of the SH planes: the main grid's, or with DC-only Gaussians the grid of
+        the coded ones (:func:`.sh_degree.sh_grid_order`)."""
+        if self._dc_only is None:
+            return cell_rows, grid.shape
+        sh_grid = degrees.sh_grid_order(int(np.count_nonzero(~self._dc_only)), grid.padding,
+                                        self.rate_point.sort.multiple)
+        self._dc_only_shape = sh_grid.shape
+        return sh_grid.cell_rows(sh_grid.cells()), sh_grid.shape
+
+    def _stage_features(self, stage: ShStage, cloud: GaussianCloud, ac: GatheredRows, key: str) -> np.ndarray:
+        """The stage fitted on (or, fitted already, applied to) the rows ``ac`` of ``cloud``."""
         if not stage.reads_row_blocks or stage.uses_dc:
             ac = np.asarray(ac)
         if stage.uses_dc:
@@ -382,7 +436,7 @@ class Encoder:
         if fit:
             return np.asarray(stage.fit_transform(ac))
         # a fitted caller's stage transforms the same cloud to the same features: once per placement
-        return self._cached(f"features-{id(self._stage_instance)}", lambda: np.asarray(stage.transform(ac)))
+        return self._cached(f"features-{id(self._stage_instance)}{key}", lambda: np.asarray(stage.transform(ac)))
 
     def _code_position_set(self, values: np.ndarray, rows: qz.RowTransform | None, spec: AttributeSpec,
                            stream: Bitstream) -> dict:
@@ -390,7 +444,7 @@ class Encoder:
         quantizer = qz.Quantizer.fit(values, spec.bits, rows)
         stream.require("positions_set")
         job = _Job("positions", {"attribute": "positions", "encoding": "morton_set", "bits": spec.bits})
-        job.key = self._work_cache_key(f"positions-{spec.bits}")
+        job.key = None if self._work_key is None else position_set_cache_key(self.rate_point, spec.bits)
         if job.key is not None and job.key in self._chunk_cache:  # type: ignore[operator]
             job.data = self._chunk_cache[job.key]  # type: ignore[index]
         else:
@@ -498,6 +552,12 @@ def _work_key(rp: RatePoint) -> str:
     positions = rp.attributes["positions"]
     return json.dumps([rp.prune_json(), rp.positions_as_set, positions.bits if rp.positions_as_set else None,
                        rp.sort.to_json(), rp.sort.multiple], sort_keys=True, default=str)
+
+
+def position_set_cache_key(rp: RatePoint, bits: int) -> tuple:
+    """The shared cache's key of the set-coded position chunk at ``bits`` under ``rp``'s pruning and
+    sorting (the rate controller stores the chunks it coded to model the position bits under it)."""
+    return ("__work__", f"positions-{bits}", _work_key(rp))
 
 
 def _cache_key(name: str, codec: GridCodec, planes: np.ndarray, bits: int, qp: int | None) -> tuple:

@@ -34,6 +34,9 @@ def encode_file(
     choose_sh: Callable[[Any], tuple[str, dict[str, Any]]] | None = None,
     network_bits: int | None = None,
     keep_share: float | None = None,
+    dc_only_share: float | None = None,
+    dc_only_energy: float | None = None,
+    dc_only_weight: str | None = None,
     cameras: str | os.PathLike | None = None,
     up: tuple[float, float, float] = (0.0, 0.0, 1.0),
     **stage_params: Any,
@@ -48,7 +51,9 @@ def encode_file(
     ``network_bits`` how a dynamic model's network is stored (16: float16, 2..8: quantised,
     the output heads at 8 bits below 8; default 8, :mod:`.deformation`). ``keep_share`` overrides
     the rate point's importance pruning (:mod:`.importance`), measured on ``cameras`` (any camera
-    file) or else orbit views around ``up``.
+    file) or else orbit views around ``up``; ``dc_only_share`` the rate point's share of DC-only
+    Gaussians (or ``dc_only_energy`` its energy bar, ``dc_only_weight`` its weight, :mod:`.sh_degree`);
+    a render weight is measured on the same views.
     """
     from gscodec_shac.deform_arch import is_dynamic_model
     from gscodec_shac.io.models import read_model
@@ -69,9 +74,11 @@ def encode_file(
     if choose_sh is not None:
         sh, chosen = choose_sh(cloud)
         stage_params = {**chosen, **stage_params}
-    point = load_rate_point(rate_point).with_overrides(keep_share=keep_share)
+    point = load_rate_point(rate_point).with_overrides(keep_share=keep_share, dc_only_share=dc_only_share,
+                                                       dc_only_energy=dc_only_energy,
+                                                       dc_only_weight=dc_only_weight)
     views = None
-    if point.keep_share < 1.0:
+    if point.keep_share < 1.0 or (point.dc_only and point.dc_only_weight == "render"):
         views = importance_views(cloud, load_cameras(cameras) if cameras is not None else None, up=up)
     encoder = Encoder(point, sh_stage=sh, sort=sort, seed=seed,
                       sh_params={k: v for k, v in stage_params.items() if v is not None},

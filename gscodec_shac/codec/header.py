@@ -13,7 +13,12 @@ got -1``). What is checked, before anything is decoded or allocated:
 * the chunk table: each chunk named by an attribute exactly once, its plane shape equal
   to ``(channels, H, W)``, its bit depth equal to the attribute's, every channel covered
   exactly once, codec indices inside the codec table, no unlisted chunk;
-* zlib chunks (``grid_mask``, ``sh_state``): the declared inflated size against its
+* per-Gaussian SH degree (feature ``sh_dc_only``): the count ``sh.dc_only`` (fewer than the
+  Gaussians, a stage that codes the DC apart) comes with the feature, the zlib chunk
+  ``sh_dc_only`` of one bit per Gaussian and the SH planes' own grid ``sh.grid`` (shape against
+  the coded Gaussians, padding ``tail`` or ``zorder``); :func:`read_dc_only` checks the flags
+  against the count;
+* zlib chunks (``grid_mask``, ``sh_state``, ``sh_dc_only``): the declared inflated size against its
   limit and against what deflate can produce from the stored bytes (at most 1032:1);
 * dynamic models (feature ``deformation``): the ``deformation`` header entry (architecture
   within :mod:`gscodec_shac.deform_arch`'s bounds, dtype float16, or uint8 with 2..8 bits and
@@ -31,6 +36,7 @@ Unknown keys are ignored: minor versions may add information an older reader ski
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -82,6 +88,11 @@ class ShEntry:
     lossless: bool
     uses_dc: bool
     ycbcr: bool
+    #: How many Gaussians are coded DC-only (feature ``sh_dc_only``; None: none, the feature is absent).
+    dc_only: int | None = None
+    #: With DC-only Gaussians: the SH planes' grid (H, W) and how the coded Gaussians fill it.
+    grid: tuple[int, int] | None = None
+    grid_padding: str = "tail"
 
 
 @dataclass(frozen=True)
@@ -212,16 +223,16 @@ def read_header(stream: Bitstream) -> StreamHeader:
         raise HEADER.error("grid", f"a {shape[0]}x{shape[1]} grid cannot hold {n:,} Gaussians")
     padding = HEADER.choice(grid.get("padding"), PADDINGS, "grid.padding")
     color = HEADER.choice(header.get("color", "rgb"), COLORS, "color")
-    sh = _sh_entry(header.get("sh"), degree)
+    sh = _sh_entry(header.get("sh"), degree, n, stream.features)
     codecs = _codec_table(header.get("codecs"))
     attributes = _attributes(header.get("attributes"), sh)
     as_set = attributes["positions"].coding == "set"
     if as_set != ("positions_set" in stream.features) or as_set != (padding == "zorder"):
         raise HEADER.error("grid.padding", "set-coded positions, the zorder padding and the positions_set "
                            "feature come together")
-    chunks = _chunk_plans(stream, attributes, shape, len(codecs))
+    chunks = _chunk_plans(stream, attributes, shape, len(codecs), sh.grid if sh else None)
     deformation = _deformation(header.get("deformation"), stream.features)
-    zlib_sizes = _zlib_chunks(stream, attributes, sh, padding, shape[0] * shape[1], deformation)
+    zlib_sizes = _zlib_chunks(stream, attributes, sh, padding, shape[0] * shape[1], deformation, n)
 
     prune = HEADER.mapping(header.get("prune"), "prune")
     policy = grid.get("policy")
@@ -270,6 +281,15 @@ def read_deformation(stream: Bitstream, view: StreamHeader) -> dict[str, np.ndar
     if bad:
         raise BitstreamError(f"corrupt .gsc file: chunk 'deformation': weight {bad[0]} holds NaN or infinity")
     return weights
+
+
+def read_dc_only(stream: Bitstream, view: StreamHeader) -> np.ndarray | None:
+    """The DC-only flag of each Gaussian in grid order (None: every Gaussian has its AC coefficients)."""
+    from gscodec_shac.codec.sh_degree import CHUNK, read_flags
+
+    if view.sh is None or view.sh.dc_only is None:
+        return None
+    return read_flags(inflate(stream.chunk(CHUNK), view.zlib_sizes[CHUNK]), view.num_gaussians, view.sh.dc_only)
 
 
 def read_stage(stream: Bitstream, view: StreamHeader) -> ShStage:
@@ -325,21 +345,40 @@ def _inflate_state(chunk: Chunk, raw_size: int) -> bytes:
 
 
 # ------------------------------------------------------------------ parts
-def _sh_entry(value: Any, degree: int) -> ShEntry | None:
+def _sh_entry(value: Any, degree: int, n: int, features: set[str]) -> ShEntry | None:
+    from gscodec_shac.codec.sh_degree import FEATURE
+
     if value is None:
+        if FEATURE in features:
+            raise HEADER.error("sh", f"the {FEATURE!r} feature needs an SH stage entry")
         if degree > 0:
             raise HEADER.error("sh", f"SH degree {degree} needs an SH stage entry, got none")
         return None
     if degree == 0:
         raise HEADER.error("sh", "SH degree 0 has no SH stage, but the header names one")
     sh = HEADER.mapping(value, "sh", optional=False)
-    return ShEntry(
+    entry = ShEntry(
         stage=HEADER.choice(sh.get("stage"), STAGES.names(), "sh.stage"),
         features=HEADER.integer(sh.get("features"), "sh.features", 0, MAX_SH_FEATURES),
         lossless=HEADER.boolean(sh.get("lossless"), "sh.lossless"),
         uses_dc=HEADER.boolean(sh.get("uses_dc"), "sh.uses_dc"),
         ycbcr=HEADER.boolean(sh.get("ycbcr"), "sh.ycbcr"),
+        dc_only=_optional_integer(sh.get("dc_only"), "sh.dc_only", 0, n - 1),
     )
+    if (entry.dc_only is not None) != (FEATURE in features):
+        raise HEADER.error("sh.dc_only", f"the DC-only count and the {FEATURE!r} feature come together")
+    if entry.dc_only is None:
+        return entry
+    if entry.uses_dc:
+        raise HEADER.error("sh.dc_only", "a stage coding the DC inside its features has no DC-only Gaussians")
+    coded = n - entry.dc_only
+    grid = HEADER.mapping(sh.get("grid"), "sh.grid", optional=False)
+    shape = (HEADER.integer(grid.get("height"), "sh.grid.height", 1, MAX_GAUSSIANS),
+             HEADER.integer(grid.get("width"), "sh.grid.width", 1, MAX_GAUSSIANS))
+    if not coded <= shape[0] * shape[1] <= 2 * coded + 4096:
+        raise HEADER.error("sh.grid", f"a {shape[0]}x{shape[1]} grid cannot hold the {coded:,} Gaussians with SH")
+    padding = HEADER.choice(grid.get("padding"), ("tail", "zorder"), "sh.grid.padding")
+    return dataclasses.replace(entry, grid=shape, grid_padding=padding)
 
 
 def _codec_table(value: Any) -> tuple[CodecEntry, ...]:
@@ -416,13 +455,13 @@ def _quantizer(value: Any, channels: int, key: str) -> Quantizer | None:
 
 
 def _chunk_plans(stream: Bitstream, attributes: dict[str, AttributeEntry], shape: tuple[int, int],
-                 n_codecs: int) -> tuple[ChunkPlan, ...]:
+                 n_codecs: int, sh_shape: tuple[int, int] | None = None) -> tuple[ChunkPlan, ...]:
     present = {c.name: c for c in stream.chunks}
     plans, owner = [], {}
     for attribute in attributes.values():
         cover = {part: np.zeros(attribute.channels, dtype=np.int64) for part in PARTS}
         for name in attribute.chunks:
-            if name in owner or name in ("grid_mask", "sh_state"):
+            if name in owner or name in ("grid_mask", "sh_state", "sh_dc_only"):
                 raise HEADER.error(f"attributes.{attribute.name}.chunks", f"chunk {name!r} is listed twice")
             owner[name] = attribute.name
             if name not in present:
@@ -431,7 +470,8 @@ def _chunk_plans(stream: Bitstream, attributes: dict[str, AttributeEntry], shape
                 _check_set_chunk(present[name].meta, name, attribute)
                 cover["all"][:] = 1
                 continue
-            plan = _chunk_plan(present[name].meta, name, attribute, shape, n_codecs)
+            plane_shape = sh_shape if attribute.name == "sh" and sh_shape else shape
+            plan = _chunk_plan(present[name].meta, name, attribute, plane_shape, n_codecs)
             cover[plan.part][plan.start : plan.stop] += 1
             plans.append(plan)
         whole = (cover["all"] == 1) & (cover["hi"] == 0) & (cover["lo"] == 0)
@@ -520,13 +560,15 @@ def _deformation_bits(value: Any, arch: DeformArch, features: set[str]) -> int |
 
 
 def _zlib_chunks(stream: Bitstream, attributes: dict[str, AttributeEntry], sh: ShEntry | None, padding: str,
-                 cells: int, deformation: DeformationEntry | None = None) -> dict[str, int]:
+                 cells: int, deformation: DeformationEntry | None = None, n: int = 0) -> dict[str, int]:
     """``{name: raw size}`` of the zlib chunks; checks no chunk is unaccounted for."""
     expected = {}
     if padding == "mask":
         expected["grid_mask"] = (cells + 7) // 8
     if sh is not None:
         expected["sh_state"] = None
+        if sh.dc_only is not None:
+            expected["sh_dc_only"] = (n + 7) // 8
     if deformation is not None:
         from gscodec_shac.codec.deformation import raw_size
 
@@ -582,6 +624,7 @@ def describe(view: StreamHeader) -> dict[str, Any]:
         "sh_degree": view.sh_degree,
         "sh_stage": view.sh.stage if view.sh else None,
         "sh_features": view.sh.features if view.sh else None,
+        "sh_dc_only": view.sh.dc_only if view.sh else None,
         "grid": f"{view.grid_shape[0]}x{view.grid_shape[1]}",
         "sort": "positions (set-coded)" if view.padding == "zorder" else view.sort_method,
         "padding": view.padding,

@@ -4,7 +4,9 @@ The template rate point (``rate_points/shac_auto.yaml``) fixes the containers an
 stage; for each scene and target the controller chooses seven settings: the opacity below
 which Gaussians are pruned, the position bits (set coding) and the QPs of opacity,
 rotation, scale, DC and the water-filled SHAC-PCA features (whose base QP also picks the
-rank M, :mod:`.allocation`).
+rank M, :mod:`.allocation`). A template with SH stage ``none`` codes every AC coefficient
+instead, on its ``sh_ac`` degree ladder, whose first QP takes the place of the base QP (the
+controller without an SH stage, :func:`gscodec_shac.rd.methods.template_without_sh`).
 
 The attributes are coded independently, so both the size and, for small errors, the
 rendered mean squared error are sums over attributes. The controller therefore models
@@ -46,7 +48,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -59,7 +61,7 @@ from gscodec_shac.codec.allocation import waterfill_qps
 from gscodec_shac.codec.attributes import ATTRIBUTES
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.decoder import Decoder
-from gscodec_shac.codec.encoder import Encoder
+from gscodec_shac.codec.encoder import Encoder, position_set_cache_key
 from gscodec_shac.codec.importance import gaussian_importance, importance_views, keep_count, most_important
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode, set_order
 from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
@@ -67,12 +69,12 @@ from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac import limits
 from gscodec_shac.limits import default_workers
 from gscodec_shac.gaussians import GaussianCloud
-from gscodec_shac.shac.base import ShStage, make_stage
+from gscodec_shac.shac.base import STAGES, ShStage, make_stage
 
 #: The template rate point of SHAC-auto.
 TEMPLATE = "shac_auto:template"
 #: Bumped when the controller's choices change for the same input (RD sweeps key their rows on it).
-VERSION = 5
+VERSION = 6
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
 #: QPs at which the probe is encoded; the models interpolate between them (and extrapolate).
@@ -83,10 +85,10 @@ POSITION_BITS = tuple(range(9, 17))
 PRUNE_THRESHOLDS = (0.0, 0.005, 0.01, 0.02, 0.05)
 #: Candidate shares of the Gaussians kept by render-based importance (rate-point ``prune.keep_share``).
 IMPORTANCE_SHARES = (0.8, 0.6, 0.45, 0.3)
-#: A probe holds at least this many Gaussians (all of a smaller cloud) ...
+#: A probe holds this many Gaussians (all of a smaller cloud), whatever the cloud's size (up to
+#: version 5: 1/16 of a cloud above 320,000 Gaussians), ...
 PROBE_MIN = 20_000
-#: ... or this share of the cloud, in this many runs along the Morton order.
-PROBE_SHARE = 1 / 16
+#: ... in this many runs along the Morton order.
 PROBE_RUNS = 4
 #: The probe QP whose decoded errors measure the render sensitivities.
 SENSITIVITY_QP = 30
@@ -249,9 +251,13 @@ class RateController:
         self.prune_: list[tuple[dict[str, float], float, float]] = [(_prune(), 1.0, 0.0)]
         self.overhead_: float = 0.0
         self.stage_: ShStage | None = None
+        #: the rate-point attribute the ``sh`` QP sets: the water-filled features, or the AC coefficients
+        #: of a template without an SH stage (stage ``none``: its degree ladder moves with the base QP)
+        self.sh_attribute = STAGES.get(point.sh_stage).rate_attribute
         self.seconds_: dict[str, float] = {}
         self._cache: dict = {}
         self._references: list[np.ndarray] = []
+        self._covariances: np.ndarray | None = None  # the cloud's 3D covariances (for renders of its variants)
         self._exact: dict[str, dict[int, float]] = {}
         self._probe_decoded: tuple[np.ndarray, GaussianCloud] | None = None  # (rows, decoded) at SENSITIVITY_QP
         self._sh_points: dict[int, dict[int, float]] = {}  # SH feature (-1: side information) -> {QP: bytes}
@@ -263,37 +269,41 @@ class RateController:
 
         tic = time.perf_counter()
         cloud = self.cloud
-        if cloud.sh_degree > 0:
-            stage = make_stage(self.template.sh_stage, **self.template.sh_params)
-            ac = cloud.ac_matrix()
-            self.stage_ = stage.fit(np.concatenate([cloud.sh_dc, ac], axis=1) if stage.uses_dc else ac)
-        probes = len(PROBE_QPS)
-        attributes = len(QP_ATTRIBUTES) - (0 if self.stage_ is not None else 1)
-        renders = 1 + attributes + 1 + len(PRUNE_THRESHOLDS) - 1 + len(self.importance_shares)  # references,
-        # perturbed attributes, positions, pruning
-        with tqdm(total=probes + renders, desc="rate control: calibrate", unit="step", disable=not self.progress,
-                  leave=False) as bar:
-            renderer = Renderer(cloud)
-            self._references = [renderer.render(view, background=self.background).image for view in self.views]
-            bar.update(1)
-            sh_values = self._sh_values()  # the whole cloud's SH features, once: the probe's extremes, their ranges
-            sh_ranges = None if sh_values is None else np.ptp(sh_values, axis=0)
-            rows = _probe_rows(cloud)
-            if rows.size < cloud.num_gaussians:
-                rows = np.union1d(rows, _extreme_rows(cloud, sh_values))
-            sh_values = None
-            rates, errors, overhead = self._probe(rows, bar)
-            self.seconds_["probe"] = time.perf_counter() - tic
-            tic = time.perf_counter()
-            sensitivity = self._sensitivities(errors, bar)
-            self.prune_ = self._prune_model(bar)
-            self.seconds_["calibrate"] = time.perf_counter() - tic
+        # the exact position bits (LZMA and sorts, which release the GIL) are coded beside the probe
+        with ThreadPoolExecutor(self.workers or default_workers()) as pool:
+            coded = _position_set_jobs(pool, cloud)
+            if cloud.sh_degree > 0:
+                stage = make_stage(self.template.sh_stage, **self.template.sh_params)
+                ac = cloud.ac_matrix()
+                self.stage_ = stage.fit(np.concatenate([cloud.sh_dc, ac], axis=1) if stage.uses_dc else ac)
+            probes = len(PROBE_QPS)
+            attributes = len(QP_ATTRIBUTES) - (0 if self.stage_ is not None else 1)
+            renders = 1 + attributes + 1 + len(PRUNE_THRESHOLDS) - 1 + len(self.importance_shares)  # references,
+            # perturbed attributes, positions, pruning
+            with tqdm(total=probes + renders, desc="rate control: calibrate", unit="step", disable=not self.progress,
+                      leave=False) as bar:
+                renderer = Renderer(cloud)
+                self._covariances = renderer.cov3
+                self._references = [renderer.render(view, background=self.background).image for view in self.views]
+                bar.update(1)
+                sh_values = self._sh_values()  # the whole cloud's SH features, once: the probe's extremes, ranges
+                sh_ranges = None if sh_values is None else np.ptp(sh_values, axis=0)
+                rows = _probe_rows(cloud)
+                if rows.size < cloud.num_gaussians:
+                    rows = np.union1d(rows, _extreme_rows(cloud, sh_values))
+                sh_values = None
+                rates, errors, overhead = self._probe(rows, bar)
+                self.seconds_["probe"] = time.perf_counter() - tic
+                tic = time.perf_counter()
+                sensitivity = self._sensitivities(errors, bar)
+                self.prune_ = self._prune_model(bar)
+                self.seconds_["calibrate"] = time.perf_counter() - tic
+            self.models_["positions"] = self._position_model(coded, sensitivity["positions"])
         grid = np.arange(0, 52)
         for name in rates:
-            rate = self._sh_rates(grid, sh_ranges) if name == "sh" else _interpolate_log(PROBE_QPS, rates[name], grid)
+            rate = self._sh_rates(grid, sh_ranges) if name == "sh" and self._waterfilled else _interpolate_log(PROBE_QPS, rates[name], grid)
             self.models_[name] = AttributeModel(
                 name, grid, rate, sensitivity[name] * _interpolate_log(PROBE_QPS, errors[name], grid))
-        self.models_["positions"] = self._position_model(sensitivity["positions"])
         self.overhead_ = overhead
         return self
 
@@ -306,7 +316,8 @@ class RateController:
         for threshold in PRUNE_THRESHOLDS[1:]:
             keep = np.flatnonzero(opacity >= threshold)
             if 0.2 <= keep.size / n < 1.0:
-                out.append((_prune(min_opacity=threshold), keep.size / n, self._rendered_mse(self.cloud.select(keep))))
+                mse = self._rendered_mse(self.cloud.select(keep), keep)
+                out.append((_prune(min_opacity=threshold), keep.size / n, mse))
             if bar is not None:
                 bar.update(1)
         if self.importance_shares:
@@ -314,7 +325,7 @@ class RateController:
         for share in self.importance_shares:
             keep = most_important(self.importance_, np.arange(n), keep_count(n, share))
             if keep.size < n:
-                out.append((_prune(keep_share=share), keep.size / n, self._rendered_mse(self.cloud.select(keep))))
+                out.append((_prune(keep_share=share), keep.size / n, self._rendered_mse(self.cloud.select(keep), keep)))
             if bar is not None:
                 bar.update(1)
         return out
@@ -341,12 +352,17 @@ class RateController:
                 errors[a][i] = _attribute_mse(a, source, decoded, point.color == "ycbcr")
             if qp == SENSITIVITY_QP:
                 self._probe_decoded = (rows[encoder.order_], decoded)
-            if "sh" in names:
+            if "sh" in names and self._waterfilled:
                 self._record_sh_chunks(stream, scale)
             overhead = max(overhead, sizes.get("header", 0))
             if bar is not None:
                 bar.update(1)
         return rates, errors, overhead
+
+    @property
+    def _waterfilled(self) -> bool:
+        """Whether the ``sh`` QP is the base QP of water-filled features (else of the AC degree ladder)."""
+        return self.sh_attribute == "sh_features"
 
     def _sh_values(self) -> np.ndarray | None:
         """The whole cloud's SH features as the encoder quantises them (YCbCr triplets where it applies)."""
@@ -408,35 +424,36 @@ class RateController:
         out = {}
         for name, mse in errors.items():
             error = max(float(mse[middle]), 1e-12) * share  # the probe's error spread over the whole cloud
-            out[name] = self._rendered_mse(_with_decoded(self.cloud, name, rows, decoded)) / error
+            same_shapes = None if name in ("rotation", "scale") else slice(None)  # the covariances stay
+            out[name] = self._rendered_mse(_with_decoded(self.cloud, name, rows, decoded), same_shapes) / error
             if bar is not None:
                 bar.update(1)
         bits = 12
         moved = _quantised_positions(self.cloud, bits)
         step_mse = _position_step_mse(self.cloud, bits)
-        out["positions"] = self._rendered_mse(moved) / step_mse
+        out["positions"] = self._rendered_mse(moved, slice(None)) / step_mse
         if bar is not None:
             bar.update(1)
         return out
 
-    def _position_model(self, sensitivity: float) -> AttributeModel:
-        """Exact set-coding bytes per bit depth (the depths in threads: LZMA and the sort release the
-        GIL); rendered MSE from the quantisation step."""
-        values = qz.log_transform(self.cloud.means)
-
-        def coded_bytes(bits: int) -> int:
-            quantizer = qz.Quantizer.fit(values, bits)
-            return len(encode_sorted_codes(np.sort(morton_encode(quantizer.quantize(values)))))
-
-        with ThreadPoolExecutor(self.workers or default_workers()) as pool:
-            sizes = list(pool.map(coded_bytes, POSITION_BITS))
+    def _position_model(self, coded: dict[int, Future], sensitivity: float) -> AttributeModel:
+        """Exact set-coding bytes per bit depth (``coded``: :func:`_position_set_jobs`); rendered MSE
+        from the quantisation step. The unpruned cloud's chunks are kept for the trial encodes."""
+        chunks = {bits: job.result() for bits, job in coded.items()}
+        for bits, data in chunks.items():
+            key = position_set_cache_key(self._rate_point({"positions": bits}), bits)
+            self._cache[key] = data
+        sizes = [len(chunks[bits]) for bits in POSITION_BITS]
         mses = [sensitivity * _position_step_mse(self.cloud, bits) for bits in POSITION_BITS]
         return AttributeModel("positions", np.array(POSITION_BITS), np.array(sizes, float), np.array(mses))
 
-    def _rendered_mse(self, cloud: GaussianCloud) -> float:
+    def _rendered_mse(self, cloud: GaussianCloud, rows: np.ndarray | slice | None = None) -> float:
+        """Rendered MSE of ``cloud`` against the references; ``rows``: ``cloud``'s rows of :attr:`cloud` when
+        their scales and rotations are the same (their 3D covariances are then taken, not recomputed)."""
         from gscodec_shac.render import Renderer
 
-        renderer = Renderer(cloud)
+        covariances = None if rows is None or self._covariances is None else self._covariances[rows]
+        renderer = Renderer(cloud, covariances=covariances)
         return float(np.mean([np.mean((renderer.render(v, background=self.background).image - ref) ** 2)
                               for v, ref in zip(self.views, self._references)]))
 
@@ -541,9 +558,13 @@ class RateController:
         for name, value in settings.items():
             if name == "prune":
                 continue
-            key = "sh_features" if name == "sh" else name
+            key = self.sh_attribute if name == "sh" else name
             field_name = "bits" if name == "positions" else "qp"
-            attributes[key] = dataclasses.replace(attributes[key], **{field_name: int(value)})
+            qp = attributes[key].qp
+            if field_name == "qp" and isinstance(qp, tuple):  # a degree ladder: its first QP moves, the steps stay
+                value = tuple(min(51, int(value) + q - qp[0]) for q in qp)
+            attributes[key] = dataclasses.replace(attributes[key], **{field_name: value if isinstance(value, tuple)
+                                                                      else int(value)})
         return dataclasses.replace(point, attributes=attributes, name=f"{point.name}+auto",
                                    **self.prune_[settings.get("prune", 0)][0])
 
@@ -572,11 +593,13 @@ class RateController:
             tried.add(_key(plan))
             started = time.perf_counter()
             expected = self._corrected_psnr(plan, measured_plans) if target.kind == "psnr" else plan.predicted_psnr
+            cached = set(self._cache)
             stream = self._encode(plan, target)
             bar.update(1)
             size = stream.total_bytes()
             trials.append({"predicted_bytes": plan.predicted_bytes, "bytes": size,
-                           "model_psnr": plan.predicted_psnr, "predicted_psnr": expected})
+                           "model_psnr": plan.predicted_psnr, "predicted_psnr": expected,
+                           "chunks": len(stream.chunks), "chunks_coded": _coded_chunks(set(self._cache) - cached)})
             self._learn(plan, stream)
             if target.kind == "bytes":
                 if size <= target.value and (best is None or size > best[0].total_bytes()):
@@ -720,6 +743,11 @@ def _model_sizes(stream: Bitstream) -> dict[str, int]:
     return sizes
 
 
+def _coded_chunks(keys: set) -> int:
+    """How many of the chunk cache's new ``keys`` are coded chunks (not placements or SH features)."""
+    return sum(1 for key in keys if key[0] != "__work__" or key[1].startswith("positions-"))
+
+
 def _prune(min_opacity: float = 0.0, keep_share: float = 1.0) -> dict[str, float]:
     """One pruning candidate as rate-point fields (the other kind of pruning off)."""
     return {"min_opacity": min_opacity, "keep_share": keep_share}
@@ -741,7 +769,7 @@ def _calibration_views(views: list[Camera]) -> list[Camera]:
 def _probe_rows(cloud: GaussianCloud) -> np.ndarray:
     """Rows of a few runs of the cloud along its Morton order (all of a small cloud), ascending."""
     n = cloud.num_gaussians
-    size = min(n, max(PROBE_MIN, int(n * PROBE_SHARE)))
+    size = min(n, PROBE_MIN)
     if size == n:
         return np.arange(n)
     values = qz.log_transform(cloud.means)
@@ -810,6 +838,18 @@ def _with_decoded(cloud: GaussianCloud, name: str, rows: np.ndarray, decoded: Ga
     values = getattr(cloud, field_name).copy()
     values[rows] = getattr(decoded, field_name)
     return cloud.replace(**{field_name: values})
+
+
+def _position_set_jobs(pool: ThreadPoolExecutor, cloud: GaussianCloud) -> dict[int, Future]:
+    """The set-coded position chunk of the whole cloud at each of :data:`POSITION_BITS`, submitted to
+    ``pool`` (the bytes an unpruned encode codes: the sorted Morton codes of the quantised log-positions)."""
+    values = qz.log_transform(cloud.means)
+
+    def coded(bits: int) -> bytes:
+        quantizer = qz.Quantizer.fit(values, bits)
+        return encode_sorted_codes(np.sort(morton_encode(quantizer.quantize(values))))
+
+    return {bits: pool.submit(coded, bits) for bits in sorted(POSITION_BITS, reverse=True)}  # dearest first
 
 
 def _quantised_positions(cloud: GaussianCloud, bits: int) -> GaussianCloud:

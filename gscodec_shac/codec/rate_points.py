@@ -12,7 +12,7 @@ deep-merged over the defaults, then validated into a :class:`RatePoint`::
       color: ycbcr                                  # rgb | ycbcr (SH colour triplets)
       attributes:                                   # per-attribute overrides
         positions: {bits: 16, layout: split8}       # split8 | single | set (lossless only)
-      sh: {stage: none}                             # SH stage and its parameters
+      sh: {stage: none}                             # SH stage and its parameters (and dc_only_share)
       sort: {method: plas, policy: pad, multiple: 8, seed: 0, weights: {xyz: 1.0}}
       prune: {min_opacity: 0.0, keep_share: 1.0}    # drop Gaussians below this opacity; keep this
                                                     # share of the input, the most important by render
@@ -37,7 +37,11 @@ the grid order then follows from the decoded positions (Morton order), so the ``
 settings do not apply.
 Positions and labels are always lossless. ``prune.keep_share`` (in (0, 1], default 1) keeps that
 share of the input Gaussians, those with the highest render-based importance
-(:mod:`gscodec_shac.codec.importance`), after the opacity threshold.
+(:mod:`gscodec_shac.codec.importance`), after the opacity threshold. ``sh.dc_only_share`` (in
+[0, 1), default 0) codes that share of the kept Gaussians with their DC colour only, those whose
+view-dependent colour is weakest (:mod:`gscodec_shac.codec.sh_degree`); ``sh.dc_only_weight``
+(``alpha``, the default, or ``render``) is what that energy is weighted by; ``sh.dc_only_energy``
+(in [0, 1), instead of a share) codes DC-only as many as drop at most that fraction of the energy.
 
 References: ``"paper_table3:rp2"`` (a file shipped in
 ``rate_points/`` at the repository root, shipped in the wheel), ``"my.yaml:fast"`` or ``"my.yaml"`` (a file
@@ -77,6 +81,8 @@ _ATTRIBUTE_KEYS = {"codec", "codec_options", "bits", "qp", "layout", "allocation
 ALLOCATIONS = ("degree", "waterfill")
 _SORT_KEYS = {"method", "policy", "multiple", "seed", "weights", "normalize", "schedule"}
 _PRUNE_KEYS = {"min_opacity", "keep_share"}
+#: What a Gaussian's AC energy is weighted by when choosing the DC-only ones (:mod:`.sh_degree`).
+DC_ONLY_WEIGHTS = ("alpha", "render")
 _DEFAULT_WEIGHTS = {"xyz": 1.0, "scale": 1.0, "opacity": 1.0, "dc": 1.0, "rotation": 0.0}
 
 
@@ -138,6 +144,15 @@ class RatePoint:
     min_opacity: float = 0.0
     description: str = ""
     keep_share: float = 1.0
+    #: Share of the kept Gaussians coded DC-only, and the weight of their AC energy (:mod:`.sh_degree`).
+    dc_only_share: float = 0.0
+    dc_only_weight: str = "alpha"
+    dc_only_energy: float = 0.0
+
+    @property
+    def dc_only(self) -> bool:
+        """Whether some Gaussians may be coded DC-only (a share or an energy bar is set)."""
+        return self.dc_only_share > 0 or self.dc_only_energy > 0
 
     @property
     def positions_as_set(self) -> bool:
@@ -168,8 +183,12 @@ class RatePoint:
         seed: int | None = None,
         codec_options: Mapping[str, Any] | None = None,
         keep_share: float | None = None,
+        dc_only_share: float | None = None,
+        dc_only_energy: float | None = None,
+        dc_only_weight: str | None = None,
     ) -> "RatePoint":
-        """A copy with the SH stage, sorting, lossy-codec options or importance pruning replaced (CLI overrides).
+        """A copy with the SH stage, sorting, lossy-codec options, importance pruning or DC-only settings replaced
+        (CLI overrides).
 
         ``sh_params`` replace the point's stage parameters when the stage changes
         and are merged into them otherwise. ``codec_options`` are merged into the
@@ -203,7 +222,31 @@ class RatePoint:
             point = dataclasses.replace(point, attributes=attributes)
         if keep_share is not None:
             point = dataclasses.replace(point, keep_share=check_keep_share(keep_share, "the keep share"))
+        if dc_only_share is not None:
+            if not _is_dc_only_share(dc_only_share):
+                raise RatePointError(f"the DC-only share must be a number in [0, 1), got {dc_only_share!r}")
+            point = dataclasses.replace(point, dc_only_share=float(dc_only_share), dc_only_energy=0.0)
+        if dc_only_energy is not None:
+            if not _is_dc_only_share(dc_only_energy):
+                raise RatePointError(f"the DC-only energy bar must be a number in [0, 1), got {dc_only_energy!r}")
+            point = dataclasses.replace(point, dc_only_energy=float(dc_only_energy), dc_only_share=0.0)
+        if dc_only_weight is not None:
+            if dc_only_weight not in DC_ONLY_WEIGHTS:
+                raise RatePointError(f"unknown DC-only weight {dc_only_weight!r}; known: {', '.join(DC_ONLY_WEIGHTS)}")
+            point = dataclasses.replace(point, dc_only_weight=dc_only_weight)
         return point
+
+    def sh_json(self) -> dict[str, Any]:
+        """The SH settings as recorded (the DC-only share only when it is used, so streams without it
+        keep their bytes)."""
+        out = {"stage": self.sh_stage, **self.sh_params}
+        if self.dc_only_share > 0:
+            out["dc_only_share"] = self.dc_only_share
+        if self.dc_only_energy > 0:
+            out["dc_only_energy"] = self.dc_only_energy
+        if self.dc_only:
+            out["dc_only_weight"] = self.dc_only_weight
+        return out
 
     def to_json(self) -> dict[str, Any]:
         """The resolved rate point, as recorded in a container header."""
@@ -211,7 +254,7 @@ class RatePoint:
             "name": self.name,
             "description": self.description,
             "color": self.color,
-            "sh": {"stage": self.sh_stage, **self.sh_params},
+            "sh": self.sh_json(),
             "sort": self.sort.to_json(),
             "prune": self.prune_json(),
             "attributes": {name: spec.to_json() for name, spec in self.attributes.items()},
@@ -339,6 +382,15 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
         raise where.error("sh", "must be a mapping like {stage: pca, energy_retention: 0.99}")
     sh = dict(sh)
     stage = sh.pop("stage", "none")
+    dc_only_share = sh.pop("dc_only_share", 0.0)
+    if not _is_dc_only_share(dc_only_share):
+        raise where.error("sh.dc_only_share", f"must be a number in [0, 1), got {dc_only_share!r}")
+    dc_only_weight = where.choice(sh.pop("dc_only_weight", "alpha"), DC_ONLY_WEIGHTS, "sh.dc_only_weight")
+    dc_only_energy = sh.pop("dc_only_energy", 0.0)
+    if not _is_dc_only_share(dc_only_energy):
+        raise where.error("sh.dc_only_energy", f"must be a number in [0, 1), got {dc_only_energy!r}")
+    if dc_only_share and dc_only_energy:
+        raise where.error("sh.dc_only_energy", "give a DC-only share or an energy bar, not both")
     sh = _stage_class(stage, where, "sh.stage").check_params(sh, where, "sh")
 
     sort_raw = where.mapping(raw.get("sort"), "sort")
@@ -387,11 +439,18 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
         min_opacity=float(min_opacity),
         description=description.strip(),
         keep_share=float(keep_share),
+        dc_only_share=float(dc_only_share),
+        dc_only_weight=dc_only_weight,
+        dc_only_energy=float(dc_only_energy),
     )
 
 
 def _is_share(value: Any) -> bool:
     return not isinstance(value, bool) and isinstance(value, (int, float)) and 0 < value <= 1
+
+
+def _is_dc_only_share(value: Any) -> bool:
+    return not isinstance(value, bool) and isinstance(value, (int, float)) and 0 <= value < 1
 
 
 def check_keep_share(value: Any, what: str) -> float:

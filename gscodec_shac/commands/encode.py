@@ -67,6 +67,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="keep this share of the Gaussians, in (0, 1]: those that contribute most to renders "
                         "from --cameras (else orbit views), after the rate point's opacity threshold "
                         "(default: the rate point's prune.keep_share, 1; docs/rate_control.md)")
+    parser.add_argument("--sh-dc-only", type=float, metavar="SHARE",
+                        help="code this share of the Gaussians, in [0, 1), with their DC colour only: those whose "
+                        "view-dependent colour (AC energy times opacity) is weakest; the SH stage sees the others "
+                        "only (default: the rate point's sh.dc_only_share, 0; docs/rate_control.md)")
+    parser.add_argument("--sh-dc-energy", type=float, metavar="BAR",
+                        help="instead of --sh-dc-only: code DC-only as many Gaussians as drop at most this fraction "
+                        "of the cloud's view-dependent energy, in [0, 1), e.g. 0.02 (rate point sh.dc_only_energy)")
+    parser.add_argument("--sh-dc-weight", choices=("alpha", "render"),
+                        help="what a Gaussian's view-dependent energy is weighted by: its opacity (alpha) or its "
+                        "contribution to renders from --cameras, else orbit views (render) (default: the rate "
+                        "point's sh.dc_only_weight, alpha)")
     parser.add_argument("--sh", choices=STAGES.names(),
                         help="SH stage (default: pca without --rate-point, else the rate point's): "
                         + "; ".join(f"{name}: {cls.summary}" for name, cls in STAGES.items()))
@@ -105,9 +116,11 @@ def run(args: argparse.Namespace) -> int:
     targets = (args.target_size, args.target_bpg, args.target_psnr)
     if any(t is not None for t in targets):
         return _run_to_target(args)
-    if args.cameras is not None and args.prune_keep is None:
-        raise GscodecError("--cameras applies to --target-psnr (the views the quality is judged from) and to "
-                           "--prune-keep (the views importance is measured from)")
+    if args.cameras is not None and args.prune_keep is None and args.sh_dc_weight != "render":
+        raise GscodecError("--cameras applies to --target-psnr (the views the quality is judged from), to "
+                           "--prune-keep and to --sh-dc-weight render (the views importance is measured from)")
+    if args.sh_dc_only is not None and args.sh_dc_energy is not None:
+        raise GscodecError("--sh-dc-only and --sh-dc-energy both choose the DC-only Gaussians: give one of them")
     default = args.rate_point is None
     point = load_rate_point(args.rate_point or DEFAULT_RATE_POINT)
     automatic = default and args.sh is None  # the SH stage is chosen from the model (codec/defaults.py)
@@ -129,7 +142,8 @@ def run(args: argparse.Namespace) -> int:
     summary = encode_file(
         args.input, args.output, point, sh=stage, sort=args.sort, seed=args.seed, preset=args.preset,
         progress=not args.quiet and sys.stderr.isatty(), choose_sh=choose_default_sh if automatic else None,
-        network_bits=args.network_bits, keep_share=args.prune_keep, cameras=args.cameras,
+        network_bits=args.network_bits, keep_share=args.prune_keep, dc_only_share=args.sh_dc_only,
+        dc_only_energy=args.sh_dc_energy, dc_only_weight=args.sh_dc_weight, cameras=args.cameras,
         up=tuple(comma_floats(args.up, "--up")), **params,
     )
     notes = list(summary["notes"])
@@ -183,7 +197,9 @@ def _run_to_target(args: argparse.Namespace) -> int:
     from gscodec_shac.io.models import report_notes
 
     fixed = [flag for flag, value in (("--sh", args.sh), ("--sort", args.sort), ("--seed", args.seed),
-                                      ("--network-bits", args.network_bits), ("--prune-keep", args.prune_keep))
+                                      ("--network-bits", args.network_bits), ("--prune-keep", args.prune_keep),
+                                      ("--sh-dc-only", args.sh_dc_only), ("--sh-dc-energy", args.sh_dc_energy),
+                                      ("--sh-dc-weight", args.sh_dc_weight))
              if value is not None]
     fixed += ["--" + f.replace("_", "-") for f in stage_options() if getattr(args, f) is not None]
     if fixed:

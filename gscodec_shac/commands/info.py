@@ -156,7 +156,8 @@ def format_gsc_summary(summary: dict[str, Any]) -> str:
         f"Gaussians         {summary['num_gaussians']:,} (input {summary['input_gaussians']:,}; "
         f"pruned {summary['pruned']:,}, dropped {summary['dropped']:,})",
         f"SH                degree {summary['sh_degree']}, stage {summary['sh_stage'] or 'none'}"
-        + (f" ({summary['sh_features']} features)" if summary["sh_features"] else ""),
+        + (f" ({summary['sh_features']} features)" if summary["sh_features"] else "")
+        + (f", {summary['sh_dc_only']:,} DC-only" if summary.get("sh_dc_only") is not None else ""),
         f"grid              {summary['grid']}, sort {summary['sort']}, padding {summary['padding']}, colour {summary['color']}",
         f"rate point        {summary['rate_point']}" + _target(summary.get("target")),
         f"bits/Gaussian     {summary['bits_per_gaussian']:.3f} bits per {_per(summary)} Gaussian",

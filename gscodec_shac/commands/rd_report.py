@@ -33,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from gscodec_shac.atomic import check_outputs
-    from gscodec_shac.rd.report import bd_table, write_report
+    from gscodec_shac.rd.report import bd_label, bd_table, write_report
     from gscodec_shac.rd.results import load_results
 
     results = Path(args.results)
@@ -48,24 +48,27 @@ def run(args: argparse.Namespace) -> int:
     paths = write_report(args.results, args.out, anchor=args.anchor, x_axis=args.x_axis, title=args.title,
                          figure_prefix=args.prefix)
     rows = load_results(args.results)
-    table = bd_table(rows, args.anchor or _anchor(args.results))
+    settings = _settings(args.results)
+    anchor = args.anchor or settings.get("anchor") or "baseline"
+    table = bd_table(rows, anchor, settings.get("compare"))
     for entry in table:
         if entry["metric"] in ("psnr_gt", "psnr_ref"):
             rate = f"{entry['bd_rate_pct']:+.1f}%" if entry["bd_rate_pct"] is not None else "n/a"
             gain = f"{entry['bd_quality']:+.3f} dB" if entry["bd_quality"] is not None else "n/a"
-            print(f"{entry['scene']}\t{entry['method']}\t{entry['metric']}\tBD-rate {rate}\tBD-PSNR {gain}")
+            print(f"{entry['scene']}\t{bd_label(entry)}\t{entry['metric']}\tBD-rate {rate}\tBD-PSNR {gain}")
     print(f"report: {paths['markdown']}; page with renders: {paths['html']}")
     return 0
 
 
-def _anchor(results: str) -> str:
+def _settings(results: str) -> dict:
+    """The sweep's settings (anchor, compare) from RESULTS/sweep.json; empty without one."""
     import json
     from pathlib import Path
 
     sweep = Path(results) / "sweep.json"
     if sweep.is_file():
-        return (json.loads(sweep.read_text()).get("settings") or {}).get("anchor") or "baseline"
-    return "baseline"
+        return json.loads(sweep.read_text()).get("settings") or {}
+    return {}
 
 
 def _own_report(out) -> bool:

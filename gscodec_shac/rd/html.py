@@ -18,6 +18,7 @@ from typing import Any
 
 from gscodec_shac.rd.curves import num, ordered, short_rate_point
 from gscodec_shac.rd.renders import reference_paths, run_render_path
+from gscodec_shac.rd.report import bd_label
 
 #: Rate points shown per method: the lowest, middle and highest size.
 SHOWN_POINTS = 3
@@ -74,15 +75,17 @@ def bd_html(table: list[dict[str, Any]], scene: str, labels: dict[str, str]) -> 
     entries = [e for e in table if e["scene"] == scene]
     if not entries:
         return "<p>No BD values: fewer than two methods with curves.</p>"
-    lines = [f"<p>BD against <b>{html.escape(entries[0]['anchor'])}</b>: negative BD-rate = fewer bytes at equal "
+    anchor = next((e["anchor"] for e in entries if not e.get("compared")), entries[0]["anchor"])
+    lines = [f"<p>BD against <b>{html.escape(anchor)}</b> (rows 'A vs B': A against B): negative BD-rate = fewer bytes at equal "
              "quality, positive BD-quality = better quality at equal size.</p>",
              '<table class="bd"><tr><th>method</th><th>quality</th><th>BD-rate</th><th>BD-quality</th>'
              "<th>note</th></tr>"]
     for e in entries:
+        name = bd_label(e)
         psnr = e["metric"].startswith("psnr")
         rate, rate_class = _signed(e.get("bd_rate_pct"), "%", 1)
         quality, quality_class = _signed(e.get("bd_quality"), " dB" if psnr else "", 3 if psnr else 4)
-        lines.append(f'<tr><td class="l">{html.escape(e["method"])}</td><td class="l">{labels.get(e["metric"], e["metric"])}'
+        lines.append(f'<tr><td class="l">{html.escape(name)}</td><td class="l">{labels.get(e["metric"], e["metric"])}'
                      f'</td><td class="{rate_class}">{rate}</td><td class="{quality_class}">{quality}</td>'
                      f'<td class="l">{html.escape(e.get("note") or "")}</td></tr>')
     return "\n".join(lines + ["</table>"])

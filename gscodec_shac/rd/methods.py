@@ -209,7 +209,9 @@ class Auto(Recipe):
 
     Runs once per target (labels ``bpg-120``, ``size-2.5MB``, ``psnr-35``), not per rate point;
     the controller calibrates on the scene's views that are not test views (fitted once per
-    scene and worker process); ``encode_s`` includes that fit.
+    scene and worker process); ``encode_s`` includes that fit. ``sh: none`` runs the same
+    controller without an SH stage (:func:`template_without_sh`): the row that isolates what
+    the SH stage gains.
     """
 
     name = "auto"
@@ -218,7 +220,7 @@ class Auto(Recipe):
     def check(self, raw: dict[str, Any], base: Path) -> dict[str, Any]:
         from gscodec_shac.codec.rate_control import TEMPLATE, VERSION, parse_size
 
-        self.where.only(raw, (*self._KINDS, "template"))
+        self.where.only(raw, (*self._KINDS, "template", "sh"))
         given = [k for k in self._KINDS if k in raw]
         if len(given) != 1:
             raise self.where.error("", "give exactly one list of targets: bpg, sizes or psnr")
@@ -234,7 +236,10 @@ class Auto(Recipe):
                 self.where.number(value, f"{kind}[{i}]", 0.0, 1e6, open_lo=True)
         template = raw.get("template", TEMPLATE)
         self.where.string(template, "template")
-        return {kind: list(values), "template": template, "controller_version": VERSION}
+        params = {kind: list(values), "template": template, "controller_version": VERSION}
+        if "sh" in raw:  # only when given, so the keys of the runs with the template's stage stay the same
+            params["sh"] = self.where.choice(raw["sh"], ("none",), "sh")
+        return params
 
     def points(self, params: dict[str, Any], rate_points: tuple[str, ...]) -> tuple[str, ...]:
         kind = next(k for k in self._KINDS if k in params)
@@ -249,7 +254,7 @@ class Auto(Recipe):
         target = make_target(cloud.num_gaussians, size=value if kind == "size" else None,
                              bpg=float(value) if kind == "bpg" else None, psnr=float(value) if kind == "psnr" else None)
         tic = time.perf_counter()
-        controller, fitted_s = _fitted_controller(ctx, params["template"])
+        controller, fitted_s = _fitted_controller(ctx, params["template"], params.get("sh"))
         try:
             outcome = controller.encode(target)
         except TargetUnreachableError as exc:
@@ -265,16 +270,36 @@ class Auto(Recipe):
 
 
 _CONTROLLERS: dict[tuple, tuple[Any, float]] = {}
+#: QP steps of the AC coefficients' degree ladder (degrees 1, 2, 3) of the controller without an SH stage:
+#: the baseline's (``rate_points/shac_ladder.yaml``, ``sh_ac: [q, q+5, q+10]``)
+NO_SH_LADDER = (0, 5, 10)
 
 
-def _fitted_controller(ctx: RunContext, template: str) -> tuple[Any, float]:
-    """One fitted rate controller per (scene file, template, preset) in this process, and the seconds its fit took."""
+def template_without_sh(template: str) -> Any:
+    """The rate-control template with SH stage ``none``: the AC coefficients coded with the baseline's
+    degree ladder, whose first QP the controller chooses as it chooses the SH features' base QP."""
+    import dataclasses
+
+    from gscodec_shac.codec.rate_points import load_rate_point
+
+    point = load_rate_point(template).with_overrides(sh_stage="none")
+    attributes = dict(point.attributes)
+    base = attributes["sh_features"].qp_for_degree(1)
+    attributes["sh_ac"] = dataclasses.replace(attributes["sh_ac"], qp=tuple(min(51, base + s) for s in NO_SH_LADDER),
+                                              allocation="degree")
+    return dataclasses.replace(point, attributes=attributes, name=f"{point.name}+nosh")
+
+
+def _fitted_controller(ctx: RunContext, template: str, sh: str | None = None) -> tuple[Any, float]:
+    """One fitted rate controller per (scene file, template, SH stage, preset) in this process, and the
+    seconds its fit took (``sh``: ``none`` for the template without its SH stage)."""
     from gscodec_shac.codec.rate_control import RateController
 
-    key = (str(ctx.ply_path), template, ctx.preset, ctx.threads, ctx.background)
+    key = (str(ctx.ply_path), template, sh, ctx.preset, ctx.threads, ctx.background)
     if key not in _CONTROLLERS:
         tic = time.perf_counter()
-        controller = RateController(ctx.load_cloud(), template, ctx.calibration_views() or None, workers=ctx.threads,
+        point = template_without_sh(template) if sh == "none" else template
+        controller = RateController(ctx.load_cloud(), point, ctx.calibration_views() or None, workers=ctx.threads,
                                     background=ctx.background,
                                     codec_options={"preset": ctx.preset} if ctx.preset else None).fit()
         _CONTROLLERS.clear()  # keep one scene's controller at a time

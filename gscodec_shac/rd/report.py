@@ -3,7 +3,9 @@
 * :func:`curves` - one RD curve per (scene, method): sizes and qualities sorted by size.
 * :func:`bd_table` - BD-rate and BD-quality of every method against the anchor method,
   per scene and quality metric (PSNR/SSIM against ground truth and against the
-  uncompressed model), with :mod:`gscodec_shac.rd.bd`.
+  uncompressed model), with :mod:`gscodec_shac.rd.bd`; plus each pair of the sweep's
+  ``settings.compare`` (a method against its own anchor, e.g. SHAC-auto against the same
+  controller without an SH stage).
 * :func:`markdown_report` / :func:`write_report` - the Markdown tables, ``bd.json`` /
   ``bd.csv``, one RD figure per scene (:mod:`gscodec_shac.rd.plots`) and ``report.html``,
   one self-contained page with the figures, BD tables and decoded renders (:mod:`gscodec_shac.rd.html`).
@@ -35,11 +37,17 @@ BD_FIELDS = ("scene", "method", "anchor", "metric", "bd_rate_pct", "bd_quality",
              "common_points", "points", "anchor_points", "overlap_lo", "overlap_hi", "monotonic", "note")
 
 
-def bd_table(rows: list[dict[str, Any]], anchor: str = "baseline") -> list[dict[str, Any]]:
-    """BD-rate (percent) and BD-quality of every method against ``anchor``, per scene and metric."""
+def bd_table(rows: list[dict[str, Any]], anchor: str = "baseline",
+             compare: dict[str, str] | None = None) -> list[dict[str, Any]]:
+    """BD-rate (percent) and BD-quality of every method against ``anchor``, per scene and metric, then of
+    each method of ``compare`` against its own anchor (``{method: anchor}``)."""
     table = []
     all_curves = curves(rows)
-    for (scene, method), curve in all_curves.items():
+    pairs = [(key, anchor, False) for key in all_curves]
+    pairs += [((scene, method), own, True) for (scene, method) in all_curves for m, own in (compare or {}).items()
+              if m == method and own != anchor]
+    for (scene, method), anchor, compared in pairs:
+        curve = all_curves[(scene, method)]
         base = all_curves.get((scene, anchor))
         if method == anchor or base is None or len(curve.rows) < 2:
             continue  # single operating points (SPZ, SOG) have no curve: see the RD table
@@ -50,7 +58,7 @@ def bd_table(rows: list[dict[str, Any]], anchor: str = "baseline") -> list[dict[
             rate, quality = bd_rate(*args), bd_quality(*args)
             size_change, quality_change, common = _same_point_changes(base, curve, column)
             table.append({
-                "scene": scene, "method": method, "anchor": anchor, "metric": column,
+                "scene": scene, "method": method, "anchor": anchor, "metric": column, "compared": compared,
                 "bd_rate_pct": rate.value if rate.ok else None,
                 "bd_quality": quality.value if quality.ok else None,
                 "size_change_pct": size_change, "quality_change": quality_change, "common_points": common,
@@ -136,7 +144,7 @@ def rd_table_markdown(rows: list[dict[str, Any]]) -> list[str]:
     """One Markdown table of the ok rows of one scene (method x rate point)."""
     has_gt = any(r.get("psnr_gt") is not None for r in rows)
     has_lpips = any(r.get("lpips_ref") is not None for r in rows)
-    head = ["method", "rate point", "MB", "bits per input G", "SH share"]
+    head = ["method", "rate point", "MB", "bits per input G", "G kept", "SH share"]
     if has_gt:
         head += ["PSNR gt", "SSIM gt"] + (["LPIPS gt"] if has_lpips else [])
     head += ["PSNR ref", "SSIM ref"] + (["LPIPS ref"] if has_lpips else []) + ["enc s", "dec s"]
@@ -148,7 +156,7 @@ def rd_table_markdown(rows: list[dict[str, Any]]) -> list[str]:
         sh = sum(v for k, v in sizes.items() if k in ("sh", "sh_state"))
         share = f"{100.0 * sh / row['bytes']:.0f}%" if sh and row.get("bytes") else "-"
         cells = [row["method"], short_rate_point(row["rate_point"]), _fmt(num(row["bytes"]) / 1e6, 3),
-                 _fmt(row.get("bits_per_gaussian"), 1), share]
+                 _fmt(row.get("bits_per_gaussian"), 1), kept_cell(row), share]
         if has_gt:
             cells += [_fmt(row.get("psnr_gt")), _fmt(row.get("ssim_gt"), 4)] + ([_fmt(row.get("lpips_gt"), 4)] if has_lpips else [])
         cells += [_fmt(row.get("psnr_ref")), _fmt(row.get("ssim_ref"), 4)] + ([_fmt(row.get("lpips_ref"), 4)] if has_lpips else [])
@@ -157,18 +165,41 @@ def rd_table_markdown(rows: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def kept_cell(row: dict[str, Any]) -> str:
+    """Gaussians the decoded model has (what the pruning kept), their share of the input and the rate
+    controller's pruning choice where it made one: ``45,000 (60%, keep 0.6)``."""
+    kept, total = num(row.get("n_decoded")), num(row.get("n_gaussians"))
+    if not math.isfinite(kept):
+        return "-"
+    notes = [f"{100.0 * kept / total:.0f}%"] if math.isfinite(total) and total > 0 else []
+    settings = ((row.get("extra") or {}).get("rate_control") or {}).get("settings") or {}
+    if num(settings.get("keep_share")) < 1.0:
+        notes.append(f"keep {num(settings['keep_share']):g}")
+    elif num(settings.get("min_opacity")) > 0.0:
+        notes.append(f"opacity >= {num(settings['min_opacity']):g}")
+    return f"{kept:,.0f}" + (f" ({', '.join(notes)})" if notes else "")
+
+
+def bd_label(entry: dict[str, Any]) -> str:
+    """A BD row's method: ``shac-auto``, or ``shac-auto vs shac-auto-nosh`` when measured against its own anchor."""
+    return f"{entry['method']} vs {entry['anchor']}" if entry.get("compared") else entry["method"]
+
+
 def bd_markdown(table: list[dict[str, Any]], scene: str) -> list[str]:
     """BD-rate / BD-quality of one scene as a Markdown table (one row per method and metric)."""
     entries = [e for e in table if e["scene"] == scene]
     if not entries:
         return []
     labels = {m: label for m, label, _ in METRICS}
-    lines = [f"BD against `{entries[0]['anchor']}`: negative BD-rate = fewer bytes at equal quality (PCHIP over "
+    against = ordered(f"against `{e['anchor']}`" if not e.get("compared") else f"of `{e['method']}` against `{e['anchor']}`"
+                      for e in sorted(entries, key=lambda x: bool(x.get("compared"))))
+    lines = ["BD " + ", ".join(against) + ": negative BD-rate = fewer bytes at equal quality (PCHIP over "
              "the overlapping interval); 'at equal rate point' = mean change over the rate points both ran at.", "",
              "| method | quality | BD-rate | BD-quality | size at equal rate point | quality at equal rate point | note |",
              "|---|---|---|---|---|---|---|"]
     order = {m: i for i, (m, _, _) in enumerate(METRICS)}
-    for e in sorted(entries, key=lambda x: (ordered(y["method"] for y in entries).index(x["method"]), order[x["metric"]])):
+    methods = ordered(y["method"] for y in entries)
+    for e in sorted(entries, key=lambda x: (bool(x.get("compared")), methods.index(x["method"]), order[x["metric"]])):
         digits = 3 if e["metric"].startswith("psnr") else 4
         unit = " dB" if e["metric"].startswith("psnr") else ""
         flag = "" if e["monotonic"] else "*"
@@ -176,7 +207,7 @@ def bd_markdown(table: list[dict[str, Any]], scene: str) -> list[str]:
         quality = f"{e['bd_quality']:+.{digits}f}{unit}{flag}" if e["bd_quality"] is not None else "n/a"
         size = f"{e['size_change_pct']:+.1f}%" if e.get("size_change_pct") is not None else "-"
         same = f"{e['quality_change']:+.{digits}f}{unit}" if e.get("quality_change") is not None else "-"
-        lines.append(f"| {e['method']} | {labels[e['metric']]} | {rate} | {quality} | {size} | {same} | {e['note']} |")
+        lines.append(f"| {bd_label(e)} | {labels[e['metric']]} | {rate} | {quality} | {size} | {same} | {e['note']} |")
     if any(not e["monotonic"] for e in entries):
         lines += ["", "\\* a curve whose quality does not increase with rate everywhere: BD is computed on the "
                   "monotone hulls (each curve without its dominated points, see the note)."]
@@ -231,7 +262,7 @@ def write_report(
     if (folder / "sweep.json").is_file():
         sweep_info = json.loads((folder / "sweep.json").read_text())
     anchor = anchor or (sweep_info.get("settings") or {}).get("anchor") or "baseline"
-    table = bd_table(rows, anchor)
+    table = bd_table(rows, anchor, (sweep_info.get("settings") or {}).get("compare"))
     written: dict[str, Path] = {}
     figures: dict[str, str] = {}
     for scene in ordered(r["scene"] for r in rows):

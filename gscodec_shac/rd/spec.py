@@ -8,6 +8,7 @@ A sweep is scenes x methods x rate points::
       sort: null                          # override every rate point's sort (plas|morton|random|none)
       preset: null                        # x265 speed preset for the lossy codecs
       anchor: baseline                    # BD-rates are measured against this method
+      compare: {shac-auto: shac-auto-nosh}   # extra BD-rates: a method against its own anchor
       retries: 1                          # in-run retries of a run that raised
       max_retries: 2                      # re-runs of a run whose worker died (Ray: max_retries)
       threads: null                       # threads per run (default: CPUs / workers)
@@ -55,7 +56,8 @@ _TOP_KEYS = {"name", "description", "rate_points", "settings", "scenes", "method
 _SCENE_KEYS = {"name", "ply", "synthetic", "cameras", "orbit", "images", "background", "test_every", "max_views", "note"}
 _SYNTHETIC_KEYS = {"n", "seed", "n_cameras", "width", "height", "ground_truth"}
 _ORBIT_KEYS = {"n", "width", "height", "fov_y", "elevation", "radius", "center", "up"}
-_SETTINGS_KEYS = {"sort", "preset", "anchor", "retries", "max_retries", "threads", "lpips_weights", "cache_sort"}
+_SETTINGS_KEYS = {"sort", "preset", "anchor", "compare", "retries", "max_retries", "threads", "lpips_weights",
+                  "cache_sort"}
 
 
 class SweepSpecError(GscodecError):
@@ -136,6 +138,7 @@ class EvalSettings:
     sort: str | None = None
     preset: str | None = None
     anchor: str = "baseline"
+    compare: dict[str, str] = field(default_factory=dict)  # method -> its own anchor (extra BD-rates; report only)
     retries: int = 1
     max_retries: int = 2
     threads: int | None = None
@@ -274,12 +277,17 @@ def _settings(raw: Any, err: Where, base: Path) -> EvalSettings:
     anchor = raw.get("anchor", "baseline")
     if not isinstance(anchor, str) or not anchor:
         raise err.error("settings.anchor", f"must be a method name, got {anchor!r}")
+    compare = err.mapping(raw.get("compare"), "settings.compare")
+    for method, other in compare.items():
+        if not isinstance(method, str) or not method or not isinstance(other, str) or not other or method == other:
+            raise err.error(f"settings.compare.{method}", f"must map a method name to another method name, got {other!r}")
     cache_sort = _bool(raw, "cache_sort", "settings.cache_sort", err, True)
     weights = raw.get("lpips_weights")
     return EvalSettings(
         sort=sort,
         preset=preset,
         anchor=anchor,
+        compare=dict(compare),
         retries=_int(raw, "retries", "settings.retries", err, 1, 0, 10),
         max_retries=_int(raw, "max_retries", "settings.max_retries", err, 2, 0, 10),
         threads=_int(raw, "threads", "settings.threads", err, None, 1, 256),

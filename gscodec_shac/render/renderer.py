@@ -119,12 +119,17 @@ class Renderer:
     new renderer after changing them. Not thread-safe: use one renderer per thread.
     """
 
-    def __init__(self, cloud: GaussianCloud) -> None:
+    def __init__(self, cloud: GaussianCloud, *, covariances: np.ndarray | None = None) -> None:
+        """``covariances``: the cloud's (N, 6) upper 3D covariances when the caller has them (e.g. the
+        ``cov3`` of a renderer of a cloud with the same scales and rotations), else computed here."""
         if not isinstance(cloud, GaussianCloud):
             raise ValidationError(f"Renderer needs a GaussianCloud, got {type(cloud).__name__}")
+        if covariances is not None and np.shape(covariances) != (cloud.num_gaussians, 6):
+            raise ValidationError(f"covariances have shape {np.shape(covariances)}, "
+                                  f"expected ({cloud.num_gaussians}, 6)")
         self.cloud = cloud
         self.means = np.ascontiguousarray(cloud.means, dtype=np.float32)
-        self.cov3 = _upper_covariances(cloud)
+        self.cov3 = _upper_covariances(cloud) if covariances is None else np.asarray(covariances, dtype=np.float64)
         self.opacities = cloud.activated_opacities()
         self.tau = alpha_extent(self.opacities)
         self._ws: _Workspace | None = None

@@ -34,6 +34,7 @@ import fractions
 import functools
 import os
 import re
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Iterator
 
@@ -139,16 +140,13 @@ class HevcCodec(GridCodec):
             options["tune"] = self.tune
         height, width = frames[0].shape[-2:]
         try:
-            ctx = av.CodecContext.create("libx265", "w")
-            ctx.width, ctx.height, ctx.pix_fmt = width, height, pix_fmt
-            ctx.time_base = fractions.Fraction(1, 25)
-            ctx.options = options
-            packets = []
-            for index, array in enumerate(frames):
-                frame = _frame_from_planes(array.reshape((-1, height, width)), pix_fmt)
-                frame.pts = index
-                packets += ctx.encode(frame)
-            packets += ctx.encode(None)
+            with X265Encoder(width, height, pix_fmt, options) as encoder:
+                packets = []
+                for index, array in enumerate(frames):
+                    frame = _frame_from_planes(array.reshape((-1, height, width)), pix_fmt)
+                    frame.pts = index
+                    packets += encoder.encode(frame)
+                packets += encoder.encode(None)
         except av.FFmpegError as exc:
             raise ValidationError(
                 f"hevc: x265 refused the settings {options} for a {width}x{height} {pix_fmt} frame: {exc}"
@@ -312,15 +310,48 @@ def _decoded_frames(stream: bytes, index: int, threads: int = 1) -> Iterator[av.
         raise BitstreamError(f"hevc stream {index} is corrupt: {exc}") from None
 
 
+# x265_encoder_open fills process-wide tables (x265_setup_primitives: "if the SAD
+# primitive is unset, set up every primitive", one table per bit depth) with no lock.
+# Two encoders of the encode scheduler opened at the same moment in a fresh process
+# could both run that set-up while one of them already encoded: a rare segfault in
+# x265 (seen once in CI). Opening and closing are serialised; encoding stays parallel.
+_X265_LIFECYCLE = threading.Lock()
+
+
+class X265Encoder:
+    """One libx265 encoder context, opened and freed under the process-wide x265 lock.
+
+    Use as a context manager; only this object holds the PyAV context, so leaving
+    the ``with`` block frees x265's encoder inside the lock.
+    """
+
+    def __init__(self, width: int, height: int, pix_fmt: str, options: dict[str, str]) -> None:
+        ctx = av.CodecContext.create("libx265", "w")
+        ctx.width, ctx.height, ctx.pix_fmt = width, height, pix_fmt
+        ctx.time_base = fractions.Fraction(1, 25)
+        ctx.options = options
+        with _X265_LIFECYCLE:
+            ctx.open()
+        self._ctx: av.CodecContext | None = ctx
+
+    def encode(self, frame: av.VideoFrame | None) -> list[av.Packet]:
+        """Packets x265 gives back for ``frame`` (``None`` flushes)."""
+        return self._ctx.encode(frame)
+
+    def __enter__(self) -> "X265Encoder":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        with _X265_LIFECYCLE:
+            self._ctx = None
+
+
 @functools.lru_cache(maxsize=1)
 def x265_version() -> str:
     """x265's version as it writes it into a stream's info SEI (encodes one 16x16 frame once)."""
-    ctx = av.CodecContext.create("libx265", "w")
-    ctx.width = ctx.height = 16
-    ctx.pix_fmt, ctx.time_base = "gray", fractions.Fraction(1, 25)
-    ctx.options = {"preset": "ultrafast", "x265-params": "log-level=error"}
     frame = _frame_from_planes(np.zeros((1, 16, 16), np.uint16), "gray")
-    stream = b"".join(bytes(p) for p in ctx.encode(frame) + ctx.encode(None))
+    with X265Encoder(16, 16, "gray", {"preset": "ultrafast", "x265-params": "log-level=error"}) as encoder:
+        stream = b"".join(bytes(p) for p in encoder.encode(frame) + encoder.encode(None))
     match = re.search(rb"x265 \(build \d+\) - ([0-9][\w.+-]*)", stream)
     return f"x265 {match.group(1).decode()}" if match else "x265 (version unknown)"
 
