@@ -14,8 +14,10 @@ its children, from ``os.wait4``) and peak RSS:
 
 plus ``startup``: ``gscodec-shac decode`` of a 300-Gaussian fixture stream (start-up cost).
 ``--baseline ../main`` runs the encode, every decode step and the target encode under that
-checkout too, right before ours (the baseline's stream is overwritten by ours; the fixed encode's
-must be the same bytes), and prints the baseline's target / encode ratio beside ours.
+checkout too, right before ours (the baseline's stream is overwritten by ours; the two fixed
+encodes' sha256 are compared and printed), and prints the baseline's target / encode ratio
+beside ours. ``--repeat R`` runs each paired encode R times, the baseline first in odd rounds and
+ours first in even ones (the load of a shared machine drifts).
 Ratios (target / encode, decode / spz_read, encode / spz_write) are printed; all rows go
 to ``OUT/bench_speed.json`` and ``.csv`` with the load average at each step.
 
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import json
 import os
 import shlex
@@ -90,6 +93,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--nice", type=int, default=5, help="niceness of the measured processes")
     parser.add_argument("--baseline", type=Path,
                         help="another checkout: its encodes and decodes run right before ours (paired)")
+    parser.add_argument("--repeat", type=int, default=1,
+                        help="paired encodes per size (with --baseline: alternating which runs first)")
     args = parser.parse_args(argv)
     args.out = args.out.resolve()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -111,6 +116,21 @@ def main(argv: list[str] | None = None) -> int:
             record(size, step + "@baseline", measured(command, args.nice, args.baseline.resolve()))
         return record(size, step, measured(command, args.nice))
 
+    def paired_encode(size: str, command: list[str], gsc: Path, ours_first: bool) -> dict:
+        """An encode under the baseline and ours (in either order); the streams' sha256 compared."""
+        if args.baseline is None:
+            return record(size, "encode", measured(command, args.nice))
+        digests, rows_ = {}, {}
+        for who in (("ours", "baseline") if ours_first else ("baseline", "ours")):
+            root = ROOT if who == "ours" else args.baseline.resolve()
+            rows_[who] = record(size, "encode" if who == "ours" else "encode@baseline", measured(command, args.nice, root))
+            digests[who] = hashlib.sha256(gsc.read_bytes()).hexdigest()
+        same = digests["ours"] == digests["baseline"]
+        rows_["ours"]["same_bytes"] = same
+        print(f"{size:>5} encode bytes {'the same' if same else 'DIFFERENT'} (sha256 {digests['ours'][:16]}"
+              f"{'' if same else ' vs baseline ' + digests['baseline'][:16]})", flush=True)
+        return rows_["ours"]
+
     paired_step("300", "startup", [*cli, "decode", str(TINY), str(args.out / "tiny.ply"), "--force"])
     for n in (parse_size(s) for s in args.sizes.split(",")):
         size = label(n)
@@ -119,7 +139,8 @@ def main(argv: list[str] | None = None) -> int:
             ply.parent.mkdir(exist_ok=True)
             measured([*cli, "synthetic", str(ply), "-n", str(n), "--views", "4", "-q", "--force"], args.nice)
         point = ["-r", args.rate_point, "--sh", "pca", "--er", "0.97", "--force"]
-        enc = paired_step(size, "encode", [*cli, "encode", str(ply), str(gsc), *point])
+        for round_ in range(max(1, args.repeat)):
+            enc = paired_encode(size, [*cli, "encode", str(ply), str(gsc), *point], gsc, ours_first=round_ % 2 == 1)
         paired_step(size, "decode_arrays", [sys.executable, "-c", DECODE_ARRAYS, str(gsc)])
         decode = paired_step(size, "decode", [*cli, "decode", str(gsc), str(dec), "--force"])
         if not args.no_target:
@@ -141,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"{enc['wall_s'] / write['wall_s']:.2f} (wall)")
     (args.out / "bench_speed.json").write_text(json.dumps(rows, indent=1) + "\n")
     with open(args.out / "bench_speed.csv", "w", newline="") as handle:
-        fields = ["size", "step", "wall_s", "cpu_s", "peak_rss_gb", "load", "output"]
+        fields = ["size", "step", "wall_s", "cpu_s", "peak_rss_gb", "load", "same_bytes", "output"]
         writer = csv.DictWriter(handle, fieldnames=fields, extrasaction="ignore")
         writer.writeheader()
         writer.writerows(rows)

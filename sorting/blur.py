@@ -98,11 +98,18 @@ def blur_grid(
     size_x: int,
     border_y: str = "reflect",
     border_x: str = "reflect",
+    *,
+    out: np.ndarray | None = None,
+    tmp: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Separable near-Gaussian blur of (H*W, K) float32 cells; kernel sizes odd, sigma = size."""
+    """Separable near-Gaussian blur of (H*W, K) float32 cells; kernel sizes odd, sigma = size.
+
+    ``out`` / ``tmp``: (H*W, K) float32 buffers for the result and the row pass, for a caller that
+    blurs many times (no fresh pages per blur).
+    """
     h, w = shape
-    tmp = np.empty_like(cells)
-    out = np.empty_like(cells)
+    tmp = np.empty_like(cells) if tmp is None else tmp
+    out = np.empty_like(cells) if out is None else out
     half_x, half_y = size_x // 2, size_y // 2
     ax, bx = quadratic_weights(half_x, float(size_x))
     ay, by = quadratic_weights(half_y, float(size_y))

@@ -258,6 +258,53 @@ def test_radius_independent_blur_matches_the_gaussian_it_replaces():
         assert np.abs(ours - expected).max() < 2e-4
 
 
+def _target_in_fresh_arrays(state, size: int, sched) -> np.ndarray:
+    """PLAS's target as it was computed before the buffers were reused: a blur into fresh arrays."""
+    from sorting.blur import blur_grid
+
+    blurred = blur_grid(state.feat, state.shape, size, size, sched.border_y, sched.border_x)
+    return plas_module.finish_target(blurred, state)
+
+
+@pytest.mark.parametrize("n", [30 * 32, 30 * 32 - 37])  # a full grid and one with empty cells
+def test_plas_target_in_reused_buffers_is_the_target_in_fresh_arrays(n):
+    shape = (30, 32)
+    rng = np.random.default_rng(0)
+    state = plas_module.make_state(smooth_features(n, seed=4), shape, rng.permutation(30 * 32)[:n])
+    sched = plas_module.make_schedule()
+    for size in (9, 3, 9, 1):  # the buffers carry over from one radius to the next
+        swap = rng.permutation(state.feat.shape[0])[:2]  # items move between radii
+        state.feat[swap], state.idx[swap] = state.feat[swap[::-1]], state.idx[swap[::-1]]
+        got = plas_module.blurred_target(state, size, size, sched)
+        assert got is state.target
+        assert got.tobytes() == _target_in_fresh_arrays(state, size, sched).tobytes()
+
+
+def test_plas_orders_are_those_of_the_sort_before_the_buffer_reuse(monkeypatch):
+    """Pins the exact orders (sha256 prefixes) of a padded and a full grid, whole-layout and
+    block-by-block, serial and parallel, as sorted at commit 482e7c8, before the blur reused its
+    buffers and the kernel its scratch: a 1M-Gaussian
+    ``paper_table3`` encode's bytes depend on these orders. (The numba kernels use fast-math:
+    another CPU may sum in another order; the golden stream hashes of test_legacy_streams.py
+    depend on the same kernels.)"""
+    import hashlib
+
+    def digest(order: np.ndarray) -> str:
+        return hashlib.sha256(np.ascontiguousarray(order, np.int64).tobytes()).hexdigest()[:16]
+
+    got = []
+    for n, shape in ((1800, (48, 40)), (1024, (32, 32))):
+        feats = smooth_features(n, seed=7)
+        with monkeypatch.context() as patch:
+            got.append(digest(sorting.sort_to_grid(feats, shape, seed=2)))
+            patch.setattr(plas_module, "BLOCKWISE_GRID", 0)
+            got.append(digest(sorting.sort_to_grid(feats, shape, seed=2)))
+            patch.setattr(plas_module, "PARALLEL_GROUPS", 1)
+            got.append(digest(sorting.sort_to_grid(feats, shape, seed=2)))
+    assert got == ["1890e7ba7a745057", "f4c6f58236f7484f", "f4c6f58236f7484f",
+                   "bc4b81024f1628d7", "444290ba5d0e0c67", "444290ba5d0e0c67"]
+
+
 # ------------------------------------------------------------------ features and metrics
 
 
