@@ -231,7 +231,8 @@ with atomic_output(sys.argv[1]) as handle:
     handle.write(b"half of the new content")
     handle.flush()
     print("writing", flush=True)
-    time.sleep(60)
+    for _ in range(600):  # short sleeps: a signal the kernel gave another thread is handled inside the block
+        time.sleep(0.1)
 """
 
 

@@ -25,6 +25,7 @@ import subprocess
 import sys
 import threading
 import time
+import warnings
 from typing import Any
 
 from gscodec_shac.errors import GscodecError
@@ -136,16 +137,22 @@ def encode(frames: list, pix_fmt: str, options: dict[str, str], timeout: float |
         except _WorkerDied as exc:
             failures.append(str(exc))
             worker.close(kill=True)
+            _say_retry(failures[-1])
             continue
         except TimeoutError:
             failures.append(f"no result after {limit:.0f} s")
             worker.close(kill=True)
+            _say_retry(failures[-1])
             continue
         _give_back(worker)
         if status == "error":
             raise value
         return value
     raise X265WorkerError(f"x265 failed in its worker process {ATTEMPTS} times: {'; '.join(failures)}")
+
+
+def _say_retry(reason: str) -> None:
+    warnings.warn(f"x265 worker process failed ({reason}): coding the stream again", RuntimeWarning, stacklevel=3)
 
 
 @atexit.register
