@@ -341,8 +341,12 @@ def test_x265_worker_processes_write_the_in_process_bytes(layout, monkeypatch):
     from gscodec_shac.codec.grid import x265_processes
 
     planes = _x265_planes()
+    import signal
+
     monkeypatch.setenv(x265_processes.ENV, "1")
+    handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
     in_workers = get_codec("hevc", layout=layout).encode(planes, 10, 26)
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == handlers  # the caller's are untouched
     monkeypatch.setenv(x265_processes.ENV, "0")
     assert get_codec("hevc", layout=layout).encode(planes, 10, 26) == in_workers
 
