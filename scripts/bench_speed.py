@@ -63,38 +63,44 @@ def label(n: int) -> str:
     return f"{n // 1_000_000}M" if n % 1_000_000 == 0 else f"{n // 1000}k"
 
 
-def _tree_rss(pid: int) -> int:
-    """Resident bytes of process ``pid`` and all its descendants (x265 worker processes), from /proc."""
-    total, stack = 0, [pid]
+def _tree_memory(pid: int) -> tuple[int, int]:
+    """(RSS, PSS) bytes of process ``pid`` and all its descendants (x265 worker processes), from
+    /proc: RSS counts shared library pages once per process, PSS shares them out."""
+    rss = pss = 0
+    stack = [pid]
     while stack:
         current = stack.pop()
         try:
-            with open(f"/proc/{current}/status") as status:
-                total += next((int(line.split()[1]) * 1024 for line in status if line.startswith("VmRSS:")), 0)
+            with open(f"/proc/{current}/smaps_rollup") as rollup:
+                for line in rollup:
+                    if line.startswith(("Rss:", "Pss:")):
+                        value = int(line.split()[1]) * 1024
+                        rss, pss = (rss + value, pss) if line.startswith("Rss:") else (rss, pss + value)
             for task in os.listdir(f"/proc/{current}/task"):
                 with open(f"/proc/{current}/task/{task}/children") as children:
                     stack += [int(child) for child in children.read().split()]
         except (OSError, ValueError):
             continue
-    return total
+    return rss, pss
 
 
 def _sample_tree_peak(pid: int, done: threading.Event, peak: list[int]) -> None:
     while not done.wait(0.05):
-        peak[0] = max(peak[0], _tree_rss(pid))
+        rss, pss = _tree_memory(pid)
+        peak[0], peak[1] = max(peak[0], rss), max(peak[1], pss)
 
 
 def measured(command: list[str], nice: int, root: Path = ROOT) -> dict:
     """Run ``command`` with the checkout ``root`` first on the path: wall seconds, CPU seconds (with
-    its reaped children) and peak RSS (GB): of that process alone (``os.wait4``) and of it with its
-    worker processes, summed (``/proc`` sampled every 50 ms)."""
+    its reaped children) and peak memory (GB): RSS of that process alone (``os.wait4``), and RSS
+    and PSS of it with its worker processes, summed (``/proc`` sampled every 50 ms)."""
     env = {**os.environ, "PYTHONPATH": str(root) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     load = os.getloadavg()[0]
     tic = time.perf_counter()
     # cwd = the checkout: ``python -m`` / ``-c`` put the working directory first on sys.path
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, cwd=root,
                                preexec_fn=(lambda: os.nice(nice)) if nice else None)
-    done, tree_peak = threading.Event(), [0]
+    done, tree_peak = threading.Event(), [0, 0]
     sampler = threading.Thread(target=_sample_tree_peak, args=(process.pid, done, tree_peak), daemon=True)
     sampler.start()
     output = process.stdout.read()  # type: ignore[union-attr]
@@ -107,7 +113,8 @@ def measured(command: list[str], nice: int, root: Path = ROOT) -> dict:
         raise SystemExit(f"error: {shlex.join(command)} failed ({process.returncode}): {output.decode()[-400:]}")
     return {"wall_s": round(wall, 3), "cpu_s": round(usage.ru_utime + usage.ru_stime, 3),
             "peak_rss_gb": round(usage.ru_maxrss / 1024**2, 3),
-            "peak_tree_rss_gb": round(max(tree_peak[0], usage.ru_maxrss * 1024) / 1024**3, 3), "load": round(load, 2),
+            "peak_tree_rss_gb": round(max(tree_peak[0], usage.ru_maxrss * 1024) / 1024**3, 3),
+            "peak_tree_pss_gb": round(tree_peak[1] / 1024**3, 3), "load": round(load, 2),
             "output": output.decode().strip().splitlines()[-1][-200:] if output.strip() else ""}
 
 
@@ -137,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
         row = {"size": size, "step": step, **result}
         rows.append(row)
         print(f"{size:>5} {step:<23} wall {row['wall_s']:8.2f} s  cpu {row.get('cpu_s', float('nan')):8.2f} s  "
-              f"peak {row.get('peak_rss_gb', float('nan')):6.2f} GB (with workers {row.get('peak_tree_rss_gb', float('nan')):.2f})  load {row['load']:.1f}", flush=True)
+              f"peak {row.get('peak_rss_gb', float('nan')):6.2f} GB (with workers: RSS {row.get('peak_tree_rss_gb', float('nan')):.2f}, PSS {row.get('peak_tree_pss_gb', float('nan')):.2f})  load {row['load']:.1f}", flush=True)
         return row
 
     def paired_step(size: str, step: str, command: list[str]) -> dict:
@@ -191,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"{enc['wall_s'] / write['wall_s']:.2f} (wall)")
     (args.out / "bench_speed.json").write_text(json.dumps(rows, indent=1) + "\n")
     with open(args.out / "bench_speed.csv", "w", newline="") as handle:
-        fields = ["size", "step", "wall_s", "cpu_s", "peak_rss_gb", "peak_tree_rss_gb", "load", "same_bytes", "output"]
+        fields = ["size", "step", "wall_s", "cpu_s", "peak_rss_gb", "peak_tree_rss_gb", "peak_tree_pss_gb", "load", "same_bytes", "output"]
         writer = csv.DictWriter(handle, fieldnames=fields, extrasaction="ignore")
         writer.writeheader()
         writer.writerows(rows)

@@ -6,7 +6,8 @@ x265's tracker has an open lookahead race). The encode scheduler runs two x265 e
 once, so each runs in a worker process of its own: ``python -m
 gscodec_shac.codec.grid.x265_worker``, started on first use, kept idle for the next piece
 and ended when this process exits (or when its stdin closes). Requests and replies are
-length-prefixed pickles on the worker's stdin and stdout; no ``multiprocessing``, so the
+a small pickle and the frames' raw samples on the worker's stdin, a pickled reply on its
+stdout; no ``multiprocessing``, so the
 caller's ``__main__`` is never imported again. A worker that dies, or a piece that runs far
 past its expected time, is replaced and the piece coded again: x265 at a fixed QP with one
 frame thread writes the same bytes every time, so a re-run changes only the wall time.
@@ -27,6 +28,8 @@ import threading
 import time
 import warnings
 from typing import Any
+
+import numpy as np
 
 from gscodec_shac.errors import GscodecError
 
@@ -49,8 +52,8 @@ class _WorkerDied(Exception):
 
 
 def enabled() -> bool:
-    """Whether x265 streams are coded in worker processes (the default)."""
-    return os.environ.get(ENV, "1").strip().lower() not in ("0", "off", "no", "false")
+    """Whether x265 streams are coded in worker processes (the default; POSIX only: pipes are polled with select)."""
+    return os.name == "posix" and os.environ.get(ENV, "1").strip().lower() not in ("0", "off", "no", "false")
 
 
 class _Worker:
@@ -62,13 +65,22 @@ class _Worker:
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=None, close_fds=True,
         )
 
-    def call(self, request: Any, timeout: float) -> Any:
-        """Send ``request``; the unpickled reply, or _WorkerDied / TimeoutError."""
-        payload = pickle.dumps(request, protocol=pickle.HIGHEST_PROTOCOL)
+    def call(self, frames: list[np.ndarray], pix_fmt: str, options: dict[str, str], timeout: float) -> Any:
+        """Send one piece; the unpickled reply, or _WorkerDied / TimeoutError.
+
+        The frames' samples go down the pipe straight from their arrays (no pickled copy),
+        after a small pickle of their shapes and dtypes, the pixel format and the options.
+        """
+        frames = [np.ascontiguousarray(frame) for frame in frames]
+        head = pickle.dumps(([(f.shape, f.dtype.str) for f in frames], pix_fmt, options),
+                            protocol=pickle.HIGHEST_PROTOCOL)
+        stdin = self.process.stdin
         try:
-            self.process.stdin.write(_LENGTH.pack(len(payload)))  # type: ignore[union-attr]
-            self.process.stdin.write(payload)  # type: ignore[union-attr]
-            self.process.stdin.flush()  # type: ignore[union-attr]
+            stdin.write(_LENGTH.pack(len(head)))  # type: ignore[union-attr]
+            stdin.write(head)  # type: ignore[union-attr]
+            for frame in frames:
+                stdin.write(memoryview(frame).cast("B"))  # type: ignore[union-attr]
+            stdin.flush()  # type: ignore[union-attr]
         except (BrokenPipeError, OSError) as exc:
             raise _WorkerDied(f"could not send the piece ({exc})") from None
         deadline = time.monotonic() + timeout
@@ -133,7 +145,7 @@ def encode(frames: list, pix_fmt: str, options: dict[str, str], timeout: float |
     for _ in range(ATTEMPTS):
         worker = _take()
         try:
-            status, value = worker.call((frames, pix_fmt, options), limit)
+            status, value = worker.call(frames, pix_fmt, options, limit)
         except _WorkerDied as exc:
             failures.append(str(exc))
             worker.close(kill=True)

@@ -1,6 +1,7 @@
 """The x265 worker process of :mod:`.x265_processes`: encodes the pieces it reads on stdin.
 
-Each request is a length-prefixed pickle ``(frames, pix_fmt, options)``; each reply a
+Each request is a length-prefixed pickle ``([(shape, dtype), ...], pix_fmt, options)``
+followed by each frame's samples (C order), read straight into its array; each reply a
 length-prefixed pickle ``("ok", stream bytes)`` or ``("error", exception)``. The process
 ends quietly when its stdin closes or its reader is gone (the caller ended or was killed);
 it ignores SIGINT (a Ctrl-C reaches the whole process group: the caller handles it and closes
@@ -16,6 +17,8 @@ import signal
 import struct
 import sys
 
+import numpy as np
+
 _LENGTH = struct.Struct("<Q")
 
 
@@ -28,6 +31,17 @@ def _read_exactly(fd: int, size: int) -> bytes | None:
         parts.append(data)
         got += len(data)
     return b"".join(parts)
+
+
+def _read_into(fd: int, array: np.ndarray) -> bool:
+    """Fill ``array`` from ``fd``; False at end of input."""
+    view, got = memoryview(array).cast("B"), 0
+    while got < len(view):
+        count = os.readv(fd, [view[got:]])
+        if not count:
+            return False
+        got += count
+    return True
 
 
 def _write_all(fd: int, data: bytes) -> None:
@@ -48,7 +62,10 @@ def main() -> int:
         payload = _read_exactly(requests, _LENGTH.unpack(head)[0])
         if payload is None:
             break
-        frames, pix_fmt, options = pickle.loads(payload)
+        layout, pix_fmt, options = pickle.loads(payload)
+        frames = [np.empty(shape, dtype=np.dtype(dtype)) for shape, dtype in layout]
+        if not all(_read_into(requests, frame) for frame in frames):
+            break
         try:
             reply: tuple = ("ok", encode_frames(frames, pix_fmt, options))
         except Exception as exc:  # sent back and raised in the caller
