@@ -38,7 +38,7 @@ ENV = "GSCODEC_X265_PROCESSES"
 #: Attempts per piece (the first and two re-runs).
 ATTEMPTS = 3
 #: Seconds a piece may run before its worker is thought hung: this much, plus PER_SAMPLE each.
-BASE_TIMEOUT = 120.0
+BASE_TIMEOUT = 30.0
 PER_SAMPLE = 20e-6  # ~10x x265 `slow`'s time per sample on this 2-core machine
 _LENGTH = struct.Struct("<Q")
 
