@@ -43,13 +43,13 @@ def bd_table(rows: list[dict[str, Any]], anchor: str = "baseline",
     each method of ``compare`` against its own anchor (``{method: anchor}``)."""
     table = []
     all_curves = curves(rows)
+    compare = compare or {}
     pairs = [(key, anchor, False) for key in all_curves]
-    pairs += [((scene, method), own, True) for (scene, method) in all_curves for m, own in (compare or {}).items()
-              if m == method and own != anchor]
-    for (scene, method), anchor, compared in pairs:
+    pairs += [(key, compare[key[1]], True) for key in all_curves if compare.get(key[1], anchor) != anchor]
+    for (scene, method), against, compared in pairs:
         curve = all_curves[(scene, method)]
-        base = all_curves.get((scene, anchor))
-        if method == anchor or base is None or len(curve.rows) < 2:
+        base = all_curves.get((scene, against))
+        if method == against or base is None or len(curve.rows) < 2:
             continue  # single operating points (SPZ, SOG) have no curve: see the RD table
         for column, _, _ in METRICS:
             if not (curve.has(column) and base.has(column)):
@@ -58,7 +58,7 @@ def bd_table(rows: list[dict[str, Any]], anchor: str = "baseline",
             rate, quality = bd_rate(*args), bd_quality(*args)
             size_change, quality_change, common = _same_point_changes(base, curve, column)
             table.append({
-                "scene": scene, "method": method, "anchor": anchor, "metric": column, "compared": compared,
+                "scene": scene, "method": method, "anchor": against, "metric": column, "compared": compared,
                 "bd_rate_pct": rate.value if rate.ok else None,
                 "bd_quality": quality.value if quality.ok else None,
                 "size_change_pct": size_change, "quality_change": quality_change, "common_points": common,

@@ -5,12 +5,13 @@ libx265 has races between encoders of one process and inside an encoder's lookah
 x265's tracker has an open lookahead race). The encode scheduler runs two x265 encodes at
 once, so each runs in a worker process of its own: ``python -m
 gscodec_shac.codec.grid.x265_worker``, started on first use, kept idle for the next piece
-and ended when this process exits (or when its stdin closes). Requests and replies are
-a small pickle and the frames' raw samples on the worker's stdin, a pickled reply on its
-stdout; no ``multiprocessing``, so the
-caller's ``__main__`` is never imported again. A worker that dies, or a piece that runs far
-past its expected time, is replaced and the piece coded again: x265 at a fixed QP with one
-frame thread writes the same bytes every time, so a re-run changes only the wall time.
+and ended when this process exits (or when its stdin closes). A request is a
+:data:`LENGTH`-prefixed pickle followed by the frames' raw samples on the worker's stdin, a
+reply a :data:`LENGTH`-prefixed pickle on its stdout; :func:`read_into` reads at both ends.
+No ``multiprocessing``, so the caller's ``__main__`` is never imported again. A worker that
+dies, or a piece that runs far past its expected time, is replaced and the piece coded again:
+x265 at a fixed QP with one frame thread writes the same bytes every time, so a re-run
+changes only the wall time.
 
 ``GSCODEC_X265_PROCESSES=0`` codes in the calling process instead (the same bytes).
 """
@@ -40,7 +41,24 @@ ATTEMPTS = 3
 #: Seconds a piece may run before its worker is thought hung: this much, plus PER_SAMPLE each.
 BASE_TIMEOUT = 30.0
 PER_SAMPLE = 20e-6  # ~10x x265 `slow`'s time per sample on this 2-core machine
-_LENGTH = struct.Struct("<Q")
+#: The length prefix of every message, request or reply (the worker reads and writes the same).
+LENGTH = struct.Struct("<Q")
+
+
+def read_into(fd: int, buffer: np.ndarray | bytearray, deadline: float | None = None) -> bool:
+    """Fill ``buffer`` from ``fd``; False at end of input. With ``deadline`` (``time.monotonic()``
+    seconds) the wait for data is bounded: :class:`TimeoutError` once it passes."""
+    view, got = memoryview(buffer).cast("B"), 0
+    while got < len(view):
+        if deadline is not None:
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([fd], [], [], left)[0]:
+                raise TimeoutError
+        count = os.readv(fd, [view[got:]])
+        if not count:
+            return False
+        got += count
+    return True
 
 
 class X265WorkerError(GscodecError):
@@ -76,7 +94,7 @@ class _Worker:
                             protocol=pickle.HIGHEST_PROTOCOL)
         stdin = self.process.stdin
         try:
-            stdin.write(_LENGTH.pack(len(head)))  # type: ignore[union-attr]
+            stdin.write(LENGTH.pack(len(head)))  # type: ignore[union-attr]
             stdin.write(head)  # type: ignore[union-attr]
             for frame in frames:
                 stdin.write(memoryview(frame).cast("B"))  # type: ignore[union-attr]
@@ -84,23 +102,13 @@ class _Worker:
         except (BrokenPipeError, OSError) as exc:
             raise _WorkerDied(f"could not send the piece ({exc})") from None
         deadline = time.monotonic() + timeout
-        (size,) = _LENGTH.unpack(self._read(_LENGTH.size, deadline))
-        return pickle.loads(self._read(size, deadline))
+        head = self._read(bytearray(LENGTH.size), deadline)
+        return pickle.loads(self._read(bytearray(LENGTH.unpack(head)[0]), deadline))
 
-    def _read(self, size: int, deadline: float) -> bytes:
-        stdout = self.process.stdout
-        fd = stdout.fileno()  # type: ignore[union-attr]
-        parts, got = [], 0
-        while got < size:
-            left = deadline - time.monotonic()
-            if left <= 0 or not select.select([fd], [], [], left)[0]:
-                raise TimeoutError
-            data = os.read(fd, min(size - got, 1 << 22))
-            if not data:
-                raise _WorkerDied(f"worker process ended (exit status {self.process.wait()})")
-            parts.append(data)
-            got += len(data)
-        return b"".join(parts)
+    def _read(self, buffer: bytearray, deadline: float) -> bytearray:
+        if not read_into(self.process.stdout.fileno(), buffer, deadline):  # type: ignore[union-attr]
+            raise _WorkerDied(f"worker process ended (exit status {self.process.wait()})")
+        return buffer
 
     def close(self, kill: bool = False) -> None:
         if kill:
@@ -146,13 +154,8 @@ def encode(frames: list, pix_fmt: str, options: dict[str, str], timeout: float |
         worker = _take()
         try:
             status, value = worker.call(frames, pix_fmt, options, limit)
-        except _WorkerDied as exc:
-            failures.append(str(exc))
-            worker.close(kill=True)
-            _say_retry(failures[-1])
-            continue
-        except TimeoutError:
-            failures.append(f"no result after {limit:.0f} s")
+        except (_WorkerDied, TimeoutError) as exc:
+            failures.append(str(exc) if isinstance(exc, _WorkerDied) else f"no result after {limit:.0f} s")
             worker.close(kill=True)
             _say_retry(failures[-1])
             continue

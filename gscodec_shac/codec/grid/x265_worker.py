@@ -14,34 +14,20 @@ from __future__ import annotations
 import os
 import pickle
 import signal
-import struct
 import sys
 
 import numpy as np
 
-_LENGTH = struct.Struct("<Q")
+from gscodec_shac.codec.grid.x265_processes import LENGTH, read_into
 
 
-def _read_exactly(fd: int, size: int) -> bytes | None:
-    parts, got = [], 0
-    while got < size:
-        data = os.read(fd, min(size - got, 1 << 22))
-        if not data:
-            return None
-        parts.append(data)
-        got += len(data)
-    return b"".join(parts)
-
-
-def _read_into(fd: int, array: np.ndarray) -> bool:
-    """Fill ``array`` from ``fd``; False at end of input."""
-    view, got = memoryview(array).cast("B"), 0
-    while got < len(view):
-        count = os.readv(fd, [view[got:]])
-        if not count:
-            return False
-        got += count
-    return True
+def _read_message(fd: int) -> bytearray | None:
+    """One length-prefixed message; None at end of input."""
+    head = bytearray(LENGTH.size)
+    if not read_into(fd, head):
+        return None
+    body = bytearray(LENGTH.unpack(head)[0])
+    return body if read_into(fd, body) else None
 
 
 def _write_all(fd: int, data: bytes) -> None:
@@ -58,13 +44,10 @@ def main() -> int:
 
     from gscodec_shac.codec.grid.hevc import encode_frames
 
-    while (head := _read_exactly(requests, _LENGTH.size)) is not None:
-        payload = _read_exactly(requests, _LENGTH.unpack(head)[0])
-        if payload is None:
-            break
+    while (payload := _read_message(requests)) is not None:
         layout, pix_fmt, options = pickle.loads(payload)
         frames = [np.empty(shape, dtype=np.dtype(dtype)) for shape, dtype in layout]
-        if not all(_read_into(requests, frame) for frame in frames):
+        if not all(read_into(requests, frame) for frame in frames):
             break
         try:
             reply: tuple = ("ok", encode_frames(frames, pix_fmt, options))
@@ -72,7 +55,7 @@ def main() -> int:
             reply = ("error", exc)
         data = pickle.dumps(reply, protocol=pickle.HIGHEST_PROTOCOL)
         try:
-            _write_all(replies, _LENGTH.pack(len(data)) + data)
+            _write_all(replies, LENGTH.pack(len(data)) + data)
         except OSError:  # the caller is gone (BrokenPipeError) or its pipe broke: nothing to answer
             return 0
     return 0
