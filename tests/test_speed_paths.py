@@ -53,6 +53,18 @@ def test_decoding_imports_no_compiled_kernels(tmp_path):
     assert len(list(tmp_path.glob("dir*/point_cloud.ply"))) == len(dynamic)
 
 
+def test_the_decode_command_imports_no_numba(tmp_path):
+    script = (
+        "import sys\n"
+        "from gscodec_shac.cli import main\n"
+        f"assert main(['decode', {str(STREAMS[-1])!r}, {str(tmp_path / 'out.ply')!r}]) == 0\n"
+        "print('numba' in sys.modules)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True)
+    assert done.stdout.strip().splitlines()[-1] == "False"
+
+
 @pytest.mark.parametrize("name", ["v2.0/ladder_rp6_pca.gsc", "v1.0/recommended_rp3_lst.gsc", "v1.0/gsplat_png_vq.gsc"])
 def test_decoding_imports_only_the_codecs_and_stage_the_stream_names(tmp_path, name):
     path = ROOT / "tests" / "fixtures" / "streams" / name
