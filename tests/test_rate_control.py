@@ -163,7 +163,7 @@ def test_importance_pruning_is_a_candidate_next_to_the_opacity_thresholds(contro
 
 def test_without_importance_shares_only_opacity_thresholds_are_candidates(small_scene):
     bare = RateController(small_scene.cloud, views=small_scene.cameras, importance_shares=())
-    assert all(prune["keep_share"] == 1.0 for prune, _, _ in bare._prune_model())
+    assert all(prune["keep_share"] == 1.0 for prune, _ in bare._prune_candidates())
 
 
 def test_importance_is_ranked_on_cameras_the_pruning_error_is_not_judged_on(controller, small_scene):

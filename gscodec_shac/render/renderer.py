@@ -183,11 +183,7 @@ class Renderer:
         bg = parse_background(background)
         frame = self.prepare(camera)
         w, h = camera.width, camera.height
-        ws = self._workspace()
-        color, trans, depth_sum, last = rasterize(frame.bins, w, h, ws.pixels)
-        ws.pixels = {"color": color, "trans": trans, "depth": depth_sum, "last": last}
-        image = np.empty((h, w, 3), dtype=np.float32)
-        np.add(color, trans[:, None] * bg, out=image.reshape(-1, 3), casting="unsafe")
+        image, trans, depth_sum = self.blend(frame.bins, camera, bg)
         alpha = (1.0 - trans).reshape(h, w)
         depth_map = None
         if depth:
@@ -198,6 +194,17 @@ class Renderer:
             n_rendered=frame.bins.n_touching, n_visible=int(np.count_nonzero(frame.projection.radii)),
             n_pairs=frame.bins.n_pairs, radii=frame.projection.radii.copy(),
         )
+
+    def blend(self, bins: TileBins, camera: Camera, background: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(image (H, W, 3) float32, transmittance (H*W,), weighted depth sum (H*W,))`` of tile lists ``bins``
+        (:meth:`prepare`'s, or lists derived from them) over ``background`` (a (3,) float64 array)."""
+        w, h = camera.width, camera.height
+        ws = self._workspace()
+        color, trans, depth_sum, last = rasterize(bins, w, h, ws.pixels)
+        ws.pixels = {"color": color, "trans": trans, "depth": depth_sum, "last": last}
+        image = np.empty((h, w, 3), dtype=np.float32)
+        np.add(color, trans[:, None] * background, out=image.reshape(-1, 3), casting="unsafe")
+        return image, trans, depth_sum
 
     def weights(self, camera: Camera) -> tuple[scipy.sparse.csr_matrix, np.ndarray]:
         """``(W, T)``: blending weights (H*W, N) and final transmittance (H*W,).
