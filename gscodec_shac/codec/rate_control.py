@@ -300,9 +300,10 @@ class RateController:
         self.overhead_ = overhead
         return self
 
-    def _prune_candidates(self) -> list[tuple[dict[str, float], np.ndarray]]:
+    def _prune_candidates(self, renderer: Any = None) -> list[tuple[dict[str, float], np.ndarray]]:
         """Rate-point prune settings and the Gaussians kept (a mask) for each opacity threshold that prunes
-        something (at most 80%) and each importance share."""
+        something (at most 80%) and each importance share (``renderer``: one of the cloud, for the
+        importance renders)."""
         opacity = self.cloud.activated_opacities()
         n = self.cloud.num_gaussians
         out: list[tuple[dict[str, float], np.ndarray]] = []
@@ -311,7 +312,7 @@ class RateController:
             if 0.2 <= np.count_nonzero(keep) / n < 1.0:
                 out.append((_prune(min_opacity=threshold), keep))
         if self.importance_shares:
-            self.importance_ = gaussian_importance(self.cloud, self.importance_views)
+            self.importance_ = gaussian_importance(self.cloud, self.importance_views, renderer=renderer)
         for share in self.importance_shares:
             rows = most_important(self.importance_, np.arange(n), keep_count(n, share))
             if rows.size < n:
@@ -331,7 +332,9 @@ class RateController:
         from gscodec_shac.render import Renderer
         from gscodec_shac.render.variants import FrameVariants
 
-        candidates = self._prune_candidates()
+        renderer = Renderer(self.cloud)
+        self._covariances = renderer.cov3
+        candidates = self._prune_candidates(renderer)
         rows, decoded = self._probe_decoded
         probe = self.cloud.select(rows)
         recolours, variant = {}, None
@@ -340,8 +343,6 @@ class RateController:
                 variant = _with_decoded(probe, name, np.arange(rows.size), decoded)
                 recolours[name] = (variant.sh_dc, variant.sh_rest)
         probe = variant = None
-        renderer = Renderer(self.cloud)
-        self._covariances = renderer.cov3
         self._references = []
         per_view: dict[Any, list] = {key: [] for key in [*recolours, *range(len(candidates))]}
         for view in self.views:

@@ -163,14 +163,16 @@ class Renderer:
         view_colors(self.means, self.cloud.sh_dc, self.cloud.sh_rest, _check_camera(camera).center, mask, out)
         return out
 
-    def prepare(self, camera: Camera) -> Frame:
-        """Project, shade and bin for ``camera`` (everything but the per-pixel blend)."""
+    def prepare(self, camera: Camera, *, shade: bool = True) -> Frame:
+        """Project, shade and bin for ``camera`` (everything but the per-pixel blend); without ``shade``
+        the colours are left unset (for the blend's weights, which do not depend on them)."""
         projection = self._project(camera)
         check_render_memory(camera.width, camera.height, f"camera {camera.name!r}")
         ws = self._workspace()
-        view_colors(
-            self.means, self.cloud.sh_dc, self.cloud.sh_rest, camera.center, projection.radii > 0, ws.pack_n, P_R
-        )
+        if shade:
+            view_colors(
+                self.means, self.cloud.sh_dc, self.cloud.sh_rest, camera.center, projection.radii > 0, ws.pack_n, P_R
+            )
         colors = ws.pack_n[:, P_R:P_R + 3]
         bins = bin_gaussians(ws.keys, ws.pack_n, ws.rects_n, camera.width, camera.height, ws.order, ws.pack, ws.rects)
         return Frame(camera, projection, colors, bins)
@@ -226,7 +228,7 @@ class Renderer:
 
         The column sums of :meth:`weights`' matrix, accumulated inside the blend (no matrix).
         """
-        frame = self.prepare(camera)
+        frame = self.prepare(camera, shade=False)
         return blend_totals(frame.bins, camera.width, camera.height, self.num_gaussians)
 
 
