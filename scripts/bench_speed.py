@@ -10,7 +10,7 @@ its children, from ``os.wait4``) and peak RSS:
 * ``target_bpg``: ``encode --target-bpg B`` (the controller picks the SH settings; skipped
   with ``--no-target``); ``chosen_fixed``: a fixed encode (``-r chosen.yaml:chosen``) of the
   settings that run chose (its stream's QPs, position bits and pruning on the SHAC-auto
-  template; whether its chunks are the target file's is printed);
+  template; the chunks that differ from the target file's are printed);
 * ``spz_write`` / ``spz_read``: ``splat-transform`` PLY -> SPZ and SPZ -> PLY of the same
   file (skipped, with a line saying why, when node or the tool is absent);
 
@@ -145,12 +145,13 @@ def chosen_rate_point(stream: Path, out: Path) -> Path | None:
     return out
 
 
-def same_chunks(a: Path, b: Path) -> bool:
-    """Whether two streams hold the same chunks, byte for byte (their headers aside)."""
+def differing_chunks(a: Path, b: Path) -> list[str]:
+    """The chunks two streams do not share byte for byte (their headers aside), with both sizes."""
     from gscodec_shac.codec import Bitstream
 
-    chunks = [[(chunk.name, chunk.data) for chunk in Bitstream.read(path).chunks] for path in (a, b)]
-    return chunks[0] == chunks[1]
+    first, second = ({chunk.name: chunk.data for chunk in Bitstream.read(path).chunks} for path in (a, b))
+    return [f"{name} ({len(first.get(name, b''))} / {len(second.get(name, b''))} bytes)"
+            for name in sorted(set(first) | set(second)) if first.get(name) != second.get(name)]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -229,10 +230,11 @@ def main(argv: list[str] | None = None) -> int:
                 chosen_gsc = aimed[suffix].with_name(aimed[suffix].stem + "_chosen_fixed.gsc")
                 record(size, "chosen_fixed" + suffix, measured(
                     [*cli, "encode", str(ply), str(chosen_gsc), "-r", f"{chosen}:chosen", "--force"], args.nice, root))
-                same = same_chunks(chosen_gsc, aimed[suffix])
-                rows[-1]["same_bytes"] = same
-                print(f"{size:>5} chosen_fixed{suffix}: {'the same' if same else 'NOT the'} coded chunks as the target "
-                      f"file (the headers differ in the rate point's name and the target)", flush=True)
+                differ = differing_chunks(aimed[suffix], chosen_gsc)
+                rows[-1]["same_bytes"] = not differ
+                print(f"{size:>5} chosen_fixed{suffix}: {chosen_gsc.stat().st_size:,} bytes, the target file's chunks "
+                      f"{'except ' + ', '.join(differ) if differ else 'all'} (the headers differ in the rate point's "
+                      f"name and the target)", flush=True)
             for suffix, _ in checkouts:
                 fixed, target = (next(r for r in reversed(rows) if r["size"] == size and r["step"] == step + suffix)
                                  for step in ("encode", "target_bpg"))

@@ -261,6 +261,8 @@ class RateController:
         self._exact: dict[str, dict[int, float]] = {}
         self._probe_decoded: tuple[np.ndarray, GaussianCloud] | None = None  # (rows, decoded) at SENSITIVITY_QP
         self._sh_points: dict[int, dict[int, float]] = {}  # SH feature (-1: side information) -> {QP: bytes}
+        #: the rendered MSE of each attribute of the probe as decoded (the sensitivities' numerators)
+        self.rendered_mse_: dict[str, float] = {}
 
     # -------------------------------------------------------------- fit
     def fit(self) -> "RateController":
@@ -359,7 +361,8 @@ class RateController:
         n = self.cloud.num_gaussians
         self.prune_ = [(_prune(), 1.0, 0.0)] + [(settings, np.count_nonzero(keep) / n, float(np.mean(per_view[i])))
                                                 for i, (settings, keep) in enumerate(candidates)]
-        return self._sensitivities(errors, {name: float(np.mean(per_view[name])) for name in recolours}, bar)
+        self.rendered_mse_ = {name: float(np.mean(per_view[name])) for name in recolours}
+        return self._sensitivities(errors, self.rendered_mse_, bar)
 
     def _probe(self, rows: np.ndarray, bar: Any = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
         """Per attribute, bytes (scaled to the whole cloud) and attribute MSE at each probe QP of the
