@@ -18,8 +18,8 @@ plus ``startup``: ``gscodec-shac decode`` of a 300-Gaussian fixture stream (star
 ``--baseline ../main`` runs the encode, every decode step and the target encode under that
 checkout too, right before ours (the baseline's stream is overwritten by ours, except the target
 stream, ``_target_baseline.gsc``; the two fixed encodes' sha256 are compared and printed), and
-prints the baseline's ratios beside ours. ``--repeat R`` runs each paired encode R times, the baseline first in odd rounds and
-ours first in even ones (the load of a shared machine drifts).
+prints the baseline's ratios beside ours. ``--repeat R`` runs each paired encode R times, the
+baseline first in odd rounds and ours first in even ones (the load of a shared machine drifts).
 Ratios (target / encode, target / the fixed encode of its own chosen settings, decode /
 spz_read, encode / spz_write) are printed; all rows go
 to ``OUT/bench_speed.json`` and ``.csv`` with the load average at each step.
@@ -217,7 +217,8 @@ def main(argv: list[str] | None = None) -> int:
         decode = paired_step(size, "decode", [*cli, "decode", str(gsc), str(dec), "--force"])
         if not args.no_target:
             checkouts = ([("@baseline", args.baseline.resolve())] if args.baseline is not None else []) + [("", ROOT)]
-            aimed = {suffix: args.out / size / f"s{size}_target{suffix.replace('@', '_')}.gsc" for suffix, _ in checkouts}
+            aimed = {suffix: args.out / size / f"s{size}_target{suffix.replace('@', '_')}.gsc"
+                     for suffix, _ in checkouts}
             for suffix, root in checkouts:
                 record(size, "target_bpg" + suffix, measured(
                     [*cli, "encode", str(ply), str(aimed[suffix]), "--target-bpg", str(args.target_bpg), "--force"],
@@ -232,9 +233,10 @@ def main(argv: list[str] | None = None) -> int:
                     [*cli, "encode", str(ply), str(chosen_gsc), "-r", f"{chosen}:chosen", "--force"], args.nice, root))
                 differ = differing_chunks(aimed[suffix], chosen_gsc)
                 rows[-1]["same_bytes"] = not differ
-                print(f"{size:>5} chosen_fixed{suffix}: {chosen_gsc.stat().st_size:,} bytes, the target file's chunks "
-                      f"{'except ' + ', '.join(differ) if differ else 'all'} (the headers differ in the rate point's "
-                      f"name and the target)", flush=True)
+                chunks = "chunks unlike the target file: " + ", ".join(differ) if differ else \
+                    "the same chunks as the target file"
+                print(f"{size:>5} chosen_fixed{suffix}: {chosen_gsc.stat().st_size:,} bytes, {chunks} (the headers "
+                      "differ in the rate point's name and the target)", flush=True)
             for suffix, _ in checkouts:
                 fixed, target = (next(r for r in reversed(rows) if r["size"] == size and r["step"] == step + suffix)
                                  for step in ("encode", "target_bpg"))

@@ -48,7 +48,8 @@ def importance_views(cloud: GaussianCloud, cameras: Sequence[Camera] | None = No
     return orbit_views(cloud.means, ORBIT_VIEWS, min(width, ORBIT_WIDTH), up=up, opacities=cloud.activated_opacities())
 
 
-def gaussian_importance(cloud: GaussianCloud, views: Sequence[Camera], *, renderer: "Renderer | None" = None) -> np.ndarray:
+def gaussian_importance(cloud: GaussianCloud, views: Sequence[Camera], *,
+                        renderer: "Renderer | None" = None) -> np.ndarray:
     """(N,) float64 mean over ``views`` of each Gaussian's summed blending weight per pixel (``renderer``:
     one of ``cloud`` to use, else a new one)."""
     from gscodec_shac.render import Renderer

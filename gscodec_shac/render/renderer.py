@@ -197,7 +197,8 @@ class Renderer:
             n_pairs=frame.bins.n_pairs, radii=frame.projection.radii.copy(),
         )
 
-    def blend(self, bins: TileBins, camera: Camera, background: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def blend(self, bins: TileBins, camera: Camera,
+              background: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(image (H, W, 3) float32, transmittance (H*W,), weighted depth sum (H*W,))`` of tile lists ``bins``
         (:meth:`prepare`'s, or lists derived from them) over ``background`` (a (3,) float64 array)."""
         w, h = camera.width, camera.height
