@@ -359,8 +359,9 @@ class RateController:
         if bar is not None:
             bar.update(1 + len(PRUNE_THRESHOLDS) - 1 + len(self.importance_shares))
         n = self.cloud.num_gaussians
-        self.prune_ = [(_prune(), 1.0, 0.0)] + [(settings, np.count_nonzero(keep) / n, float(np.mean(per_view[i])))
-                                                for i, (settings, keep) in enumerate(candidates)]
+        self.prune_ = [(_prune(), 1.0, 0.0)] + [
+            (settings, int(np.count_nonzero(keep)) / n, float(np.mean(per_view[i])))
+            for i, (settings, keep) in enumerate(candidates)]
         self.rendered_mse_ = {name: float(np.mean(per_view[name])) for name in recolours}
         return self._sensitivities(errors, self.rendered_mse_, bar)
 
