@@ -65,7 +65,7 @@ from gscodec_shac.codec.encoder import Encoder, position_set_cache_key
 from gscodec_shac.codec.importance import gaussian_importance, importance_views, keep_count, most_important
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode, set_order
 from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
-from gscodec_shac.codec.rate_sh_degree import DC_ONLY_BARS, DcOnlyChoice, fit_choices, probe_flags, zeroed
+from gscodec_shac.codec.rate_sh_degree import DC_ONLY_BARS, DcOnlyChoice, fit_choices, zeroed
 from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac import limits
 from gscodec_shac.limits import default_workers
@@ -345,18 +345,11 @@ class RateController:
         probe = self.cloud.select(rows)
         scale = self.cloud.num_gaussians / probe.num_gaussians
 
-        def encode_probe(value: float, qp: int) -> tuple[float, float]:
+        def encode_probe(value: float, qp: int) -> float:
             point = self._rate_point({a: qp for a in rates} | {"positions": 16}).with_overrides(dc_only_energy=value)
-            encoder = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers)
-            stream = encoder.encode(probe)
-            decoded = Decoder(workers=self.workers).decode(stream.to_bytes()).ac_matrix()
-            sizes = stream.attribute_sizes()
-            flags = probe_flags(stream)
-            coded = slice(None) if flags is None else ~flags
-            ac = self.cloud.ac_matrix().copy()
-            ac[rows[encoder.order_][coded]] = decoded[coded]  # the DC-only ones as they were: coding error only
-            return (scale * sizes.get("sh", 0) + sizes.get("sh_state", 0),
-                    self._rendered_mse(self.cloud.with_ac_matrix(ac), slice(None)))
+            sizes = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers).encode(probe) \
+                .attribute_sizes()
+            return scale * sizes.get("sh", 0) + sizes.get("sh_state", 0)
 
         def zeroing_errors(value: float) -> tuple[float, ...]:
             out = []
@@ -374,20 +367,17 @@ class RateController:
             return most_important(self.importance_, np.arange(n), keep_count(n, prune["keep_share"]))
         return np.flatnonzero(self.cloud.activated_opacities() >= prune["min_opacity"])
 
-    def _dc_factors(self, settings: dict[str, int], name: str) -> tuple[float, float]:
-        """(bytes, rendered MSE) factors of attribute ``name``'s models under the settings' DC-only bar."""
-        if name != "sh":
-            return 1.0, 1.0
-        size, error = self.dc_only_[settings.get("dc_only", 0)].factors(settings[name])
-        return float(size), float(error)
+    def _dc_factor(self, settings: dict[str, int], name: str) -> float:
+        """The factor of attribute ``name``'s bytes under the settings' DC-only bar."""
+        return float(self.dc_only_[settings.get("dc_only", 0)].bytes_factor(settings[name])) if name == "sh" else 1.0
 
     def _dc_models(self, dc: int) -> dict[str, AttributeModel]:
-        """The attribute models under DC-only choice ``dc`` (the SH bytes and MSE scaled by its factors)."""
+        """The attribute models under DC-only choice ``dc`` (the SH bytes scaled by its factor)."""
         models = dict(self.models_)
         if dc and "sh" in models:
             sh = models["sh"]
-            size, error = self.dc_only_[dc].factors(sh.choices)
-            models["sh"] = AttributeModel(sh.name, sh.choices, sh.bytes * size, sh.mse * error)
+            models["sh"] = AttributeModel(sh.name, sh.choices, sh.bytes * self.dc_only_[dc].bytes_factor(sh.choices),
+                                          sh.mse)
         return models
 
     def _probe(self, rows: np.ndarray, bar: Any = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
@@ -573,10 +563,10 @@ class RateController:
         _, kept, prune_mse = self.prune_[prune]
         dc = self.dc_only_[settings.get("dc_only", 0)]
         size = self._overhead_bytes() + self._position_bytes(settings["positions"], prune) + kept * dc.flag_bytes + sum(
-            kept * self._dc_factors(settings, name)[0] * self._bytes(name, settings[name])
+            kept * self._dc_factor(settings, name) * self._bytes(name, settings[name])
             for name in self.models_ if name != "positions")
-        mse = prune_mse + dc.zeroing(prune) + sum(self._dc_factors(settings, n)[1] * m.mse[np.searchsorted(m.choices, settings[n])]
-                                              for n, m in self.models_.items())
+        mse = prune_mse + dc.zeroing(prune) + sum(m.mse[np.searchsorted(m.choices, settings[n])]
+                                                  for n, m in self.models_.items())
         return Plan(settings, size, mse, self._rate_point(settings))
 
     def _position_bytes(self, bits: int, prune: int) -> float:
@@ -615,7 +605,7 @@ class RateController:
         kept = self.prune_[plan.settings.get("prune", 0)][1]
         for name in self.models_:
             if sizes.get(name, 0) > 0:  # kept unpruned-equivalent, without a DC-only bar; positions as measured
-                scale = 1.0 if name == "positions" else 1.0 / (kept * self._dc_factors(plan.settings, name)[0])
+                scale = 1.0 if name == "positions" else 1.0 / (kept * self._dc_factor(plan.settings, name))
                 self._exact.setdefault(name, {})[plan.settings[name]] = float(sizes[name]) * scale
         coded = sum(sizes.get(name, 0) for name in self.models_) + sizes.get("sh_dc_only", 0)  # the flags: modelled
         self._exact["overhead"] = {0: float(stream.total_bytes() - coded)}

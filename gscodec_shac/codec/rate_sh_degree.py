@@ -12,15 +12,12 @@ at fit time rather than assumed:
   exact size on the whole cloud). The ratio falls towards fine QPs, where the codec spends
   bytes on the noise of near-zero coefficients (bonsai, bar 0.01: 0.73 of the SH bytes at
   QP 17, 0.87 at QP 30);
-* **coding error**: only the coded Gaussians carry the codec's SH error. The same encode,
-  rendered with the probe's coded Gaussians as decoded (the DC-only ones as they were), gives
-  the ratio of its rendered error to the render of the probe encoded and decoded without the
-  bar at the same QP; the SH error curve is scaled by it, interpolated alike (against the
-  controller's SH model at QP 18 instead of a render the ratio came out far too low: its render
-  sensitivity is measured at QP 30). Rendered, not in
-  the attribute domain: the Gaussians a bar leaves DC-only are the faint ones (energy times
-  opacity), whose coding error shows less than the average one (on the chair the attribute
-  ratio 0.81 predicted 0.4 dB more than the encode measured);
+* **coding error**: the coded Gaussians keep the SH error they had (the SH error curve is not
+  scaled). A ratio measured like the bytes one (the rendered error of the probe's coded
+  Gaussians as decoded with the bar, against the probe decoded without it: 0.78-0.92 on bonsai
+  and chair) did not show in whole encodes: at the same QPs the bar cost the chair 0.28-0.38 dB
+  and bonsai 0.35-0.66 dB against the uncompressed model, about the zeroing error alone, and
+  with it the controller took the bar where it lost (chair at 55 bits/G, 0.8 dB);
 * **zeroing error**: for every pruning candidate of the controller, the rendered MSE added by
   zeroing the AC coefficients of the Gaussians the bar flags among the kept ones, by exact
   renders. Per pruning candidate, because the bar is a share of the kept Gaussians' energy:
@@ -28,20 +25,18 @@ at fit time rather than assumed:
   zeroing error measured on the unpruned cloud was half the one an encode showed).
 
 So the SH attribute's predicted bytes are ``bytes_ratio(qp) * R_sh(qp) + flags`` and its rendered
-MSE ``error_ratio(qp) * k_sh e_sh(qp) + zeroed_mse[prune]`` (the sum model of the controller,
+MSE ``k_sh e_sh(qp) + zeroed_mse[prune]`` (the sum model of the controller,
 whose other attributes are unchanged).
 """
 
 from __future__ import annotations
 
-import zlib
 from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
 
 from gscodec_shac.codec import sh_degree as degrees
-from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.gaussians import GaussianCloud
 
 #: Candidate energy bars (rate point ``sh.dc_only_energy``); 0 codes every Gaussian's AC.
@@ -58,7 +53,6 @@ class DcOnlyChoice:
     share: float = 0.0  # of the whole cloud's Gaussians left DC-only
     qps: tuple[int, ...] = (0,)  # where the ratios were measured
     bytes_ratios: tuple[float, ...] = (1.0,)
-    error_ratios: tuple[float, ...] = (1.0,)
     zeroed_mse: tuple[float, ...] = ()  # per pruning candidate of the controller (none: 0)
     flag_bytes: float = 0.0
 
@@ -66,10 +60,10 @@ class DcOnlyChoice:
         """The rendered MSE the bar adds under the controller's pruning candidate ``prune``."""
         return self.zeroed_mse[prune] if self.zeroed_mse else 0.0
 
-    def factors(self, qp: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
-        """(bytes, rendered MSE) factors of the SH models at base QP ``qp`` (linear between the
-        measured QPs, the end values beyond)."""
-        return (np.interp(qp, self.qps, self.bytes_ratios), np.interp(qp, self.qps, self.error_ratios))
+    def bytes_factor(self, qp: np.ndarray | int) -> np.ndarray:
+        """The factor of the SH bytes at base QP ``qp`` (linear between the measured QPs, the end
+        values beyond)."""
+        return np.interp(qp, self.qps, self.bytes_ratios)
 
     def rate_point_fields(self) -> dict[str, float]:
         """The bar as rate-point overrides (nothing for bar 0: the template's own setting stays)."""
@@ -89,27 +83,17 @@ def whole_cloud_flags(cloud: GaussianCloud, bar: float) -> np.ndarray:
     return degrees.dc_only_flags(degrees.ac_energy(cloud.ac_matrix(), cloud.activated_opacities()), 0.0, bar)
 
 
-def probe_flags(stream: Bitstream) -> np.ndarray | None:
-    """The DC-only flags of a probe's stream in its grid order (None when it has none)."""
-    count = (stream.header.get("sh") or {}).get("dc_only")
-    if not count:
-        return None
-    raw = zlib.decompress(stream.chunk(degrees.CHUNK).data)
-    return degrees.read_flags(raw, int(stream.header["num_gaussians"]), int(count))
-
-
 def fit_choices(
     cloud: GaussianCloud,
-    encode_probe: Callable[[float, int], tuple[float, float]],
+    encode_probe: Callable[[float, int], float],
     zeroing_errors: Callable[[float], tuple[float, ...]],
     bars: tuple[float, ...] = DC_ONLY_BARS,
     bar: Any = None,
 ) -> list[DcOnlyChoice]:
     """The measured :class:`DcOnlyChoice` of every bar in ``bars`` (bar 0 first, unchanged).
 
-    ``encode_probe(bar, qp)``: the probe encoded at ``qp`` with the bar (0: none), as its SH bytes
-    (scaled as the rate model scales them) and the rendered MSE of its coded Gaussians' SH as
-    decoded (the others as they were); ``zeroing_errors(bar)``: the zeroing error under each pruning
+    ``encode_probe(bar, qp)``: the SH bytes of the probe encoded at ``qp`` with the bar (0: none),
+    scaled as the rate model scales them; ``zeroing_errors(bar)``: the zeroing error under each pruning
     candidate (``bar``: a progress bar advanced once per bar)."""
     out = [DcOnlyChoice(0.0)]
     if not any(value > 0 for value in bars):
@@ -123,8 +107,7 @@ def fit_choices(
             measured = [encode_probe(value, qp) for qp in RATIO_QPS]
             out.append(DcOnlyChoice(
                 bar=value, share=float(flags.mean()), qps=RATIO_QPS,
-                bytes_ratios=tuple(b / max(without[q][0], 1e-9) for (b, _), q in zip(measured, RATIO_QPS)),
-                error_ratios=tuple(r / max(without[q][1], 1e-20) for (_, r), q in zip(measured, RATIO_QPS)),
+                bytes_ratios=tuple(b / max(without[q], 1e-9) for b, q in zip(measured, RATIO_QPS)),
                 zeroed_mse=tuple(zeroing_errors(value)),
                 flag_bytes=float(len(degrees.flags_chunk(flags)[0]))))
         if bar is not None:
