@@ -10,19 +10,18 @@ at fit time rather than assumed:
   probe's without it at those QPs; the SH rate curve is scaled by that ratio, interpolated
   linearly in the QP between them (the end values beyond), and the flags chunk is added (its
   exact size on the whole cloud). The ratio falls towards fine QPs, where the codec spends
-  bytes on the noise of near-zero coefficients (bonsai, bar 0.01: 0.73 of the SH bytes at
-  QP 17, 0.87 at QP 30);
+  bytes on the noise of near-zero coefficients (bonsai, bar 0.01: 0.87 on the probe at QP 30,
+  0.73 in a whole encode at QP 17);
 * **coding error**: the coded Gaussians keep the SH error they had (the SH error curve is not
   scaled). A ratio measured like the bytes one (the rendered error of the probe's coded
-  Gaussians as decoded with the bar, against the probe decoded without it: 0.78-0.92 on bonsai
-  and chair) did not show in whole encodes: at the same QPs the bar cost the chair 0.28-0.38 dB
-  and bonsai 0.35-0.66 dB against the uncompressed model, about the zeroing error alone, and
-  with it the controller took the bar where it lost (chair at 55 bits/G, 0.8 dB);
+  Gaussians as decoded with the bar, against the probe decoded without it) came out below 1 but
+  did not show in whole encodes: at the same QPs the bar cost the chair 0.3-0.4 dB and bonsai
+  0.35-1.2 dB against the uncompressed model, about the zeroing error alone
+  (docs/rate_control.md, "Controller version 7");
 * **zeroing error**: for every pruning candidate of the controller, the rendered MSE added by
   zeroing the AC coefficients of the Gaussians the bar flags among the kept ones, by exact
   renders. Per pruning candidate, because the bar is a share of the kept Gaussians' energy:
-  after pruning the faint Gaussians it takes visible ones (on bonsai, importance 0.6, the
-  zeroing error measured on the unpruned cloud was half the one an encode showed).
+  after pruning the faint Gaussians it takes visible ones.
 
 So the SH attribute's predicted bytes are ``bytes_ratio(qp) * R_sh(qp) + flags`` and its rendered
 MSE ``k_sh e_sh(qp) + zeroed_mse[prune]`` (the sum model of the controller,
