@@ -123,6 +123,7 @@ def test_unknown_references(ref, message):
         ({"points": {"a": {"qp": {"opacity": "high"}}}}, "qp.opacity", "QP must be"),
         ({"points": {"a": {"qp": {"sh_ac": [10, 99]}}}}, "qp.sh_ac[1]", "0-51"),
         ({"points": {"a": {"qp": {"colour": 10}}}}, "qp.colour", "unknown attribute"),
+        ({"points": {"a": {"qp": {"rotation": [10, 12, 14]}}}}, "qp.rotation", "one QP or two"),
         ({"points": {"a": {"qp": {"positions": 10}}}}, "qp.positions", "losslessly"),
         ({"points": {"a": {"codec": "webp2"}}}, "attributes.positions.codec", "unknown codec 'webp2'"),
         ({"points": {"a": {"codec": "png", "qp": {"scale": 10}}}}, "attributes.scale.codec", "lossless only"),
@@ -185,3 +186,15 @@ def test_the_ladder_spans_the_rates_monotonically():
     assert pruning == sorted(pruning, reverse=True) and pruning[-1] == 0.0
     bits = [p.attributes["positions"].bits for p in points]
     assert bits == sorted(bits) and bits[0] == 10 and bits[-1] == 16 and all(p.positions_as_set for p in points)
+
+
+def test_rotation_takes_a_qp_for_x_y_z_and_one_for_w(tmp_path, small_cloud):
+    path = tmp_path / "rot.yaml"
+    path.write_text(yaml.safe_dump({"points": {"a": {"codec": "hevc", "qp": {
+        "opacity": 22, "rotation": [17, 29], "scale": 12, "sh_dc": 7, "sh_ac": 22}}}}))
+    point = load_rate_point_file(path)["a"]
+    assert point.attributes["rotation"].qp == (17, 29)
+    stream = Encoder(point).encode(small_cloud)
+    assert {c.name: c.meta["qp"] for c in stream.chunks if c.name.startswith("rotation")} == \
+        {"rotation_0": 29, "rotation_1": 17}  # chunk 0 holds w
+    assert Decoder().decode(stream.to_bytes()).num_gaussians == small_cloud.num_gaussians

@@ -496,7 +496,7 @@ class Encoder:
             entry = self._code_integers(name, transform, q, spec.bits, spec, cell_rows, shape)
         else:
             channels = q.shape[1]
-            qps = qps or [spec.qp_for_degree(1)] * channels
+            qps = qps or _channel_qps(name, spec, channels)
             runs = groups or qp_runs(qps)
             entry = {"chunks": []}
             for index, (start, stop) in enumerate(runs):
@@ -568,3 +568,11 @@ def _cache_key(name: str, codec: GridCodec, planes: np.ndarray, bits: int, qp: i
 
 def _first(outputs: list[bytes]) -> bytes:
     return outputs[0]
+
+
+def _channel_qps(name: str, spec: AttributeSpec, channels: int) -> list[int]:
+    """One QP per channel of a lossy attribute: the spec's QP, or for ``rotation`` with two QPs
+    (rate point ``rotation: [xyz, w]``) the second one on channel 0 (w) and the first on x, y, z."""
+    if name == "rotation" and isinstance(spec.qp, tuple):
+        return [spec.qp[-1]] + [spec.qp[0]] * (channels - 1)
+    return [spec.qp_for_degree(1)] * channels

@@ -65,6 +65,7 @@ from gscodec_shac.codec.encoder import Encoder, position_set_cache_key
 from gscodec_shac.codec.importance import gaussian_importance, importance_views, keep_count, most_important
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode, set_order
 from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
+from gscodec_shac.codec.rate_sh_degree import DC_ONLY_BARS, DcOnlyChoice, fit_choices, zeroed
 from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac import limits
 from gscodec_shac.limits import default_workers
@@ -74,7 +75,7 @@ from gscodec_shac.shac.base import STAGES, ShStage, make_stage
 #: The template rate point of SHAC-auto.
 TEMPLATE = "shac_auto:template"
 #: Bumped when the controller's choices change for the same input (RD sweeps key their rows on it).
-VERSION = 6
+VERSION = 7
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
 #: QPs at which the probe is encoded; the models interpolate between them (and extrapolate).
@@ -187,8 +188,10 @@ class Outcome:
         """What ``encode --json`` and the header report about the choice."""
         out = {
             "target": {"kind": self.target.kind, "value": self.target.value},
-            "settings": {**{k: v for k, v in self.plan.settings.items() if k != "prune"},
-                         **self.plan.rate_point.prune_json()},
+            "settings": {**{k: v for k, v in self.plan.settings.items() if k not in ("prune", "dc_only")},
+                         **self.plan.rate_point.prune_json(),
+                         **({"dc_only_energy": self.plan.rate_point.dc_only_energy}
+                            if self.plan.rate_point.dc_only_energy > 0 else {})},
             "predicted_bytes": round(self.plan.predicted_bytes),
             "predicted_psnr": round(self.plan.predicted_psnr, 3),
             "encodes": self.encodes,
@@ -249,6 +252,8 @@ class RateController:
         self.models_: dict[str, AttributeModel] = {}
         #: (rate-point prune settings, share of Gaussians kept, rendered MSE of pruning) per candidate
         self.prune_: list[tuple[dict[str, float], float, float]] = [(_prune(), 1.0, 0.0)]
+        #: the DC-only energy bars the controller chooses between (:mod:`.rate_sh_degree`), bar 0 first
+        self.dc_only_: list[DcOnlyChoice] = [DcOnlyChoice(0.0)]
         self.overhead_: float = 0.0
         self.stage_: ShStage | None = None
         #: the rate-point attribute the ``sh`` QP sets: the water-filled features, or the AC coefficients
@@ -278,8 +283,8 @@ class RateController:
                 self.stage_ = stage.fit(np.concatenate([cloud.sh_dc, ac], axis=1) if stage.uses_dc else ac)
             probes = len(PROBE_QPS)
             attributes = len(QP_ATTRIBUTES) - (0 if self.stage_ is not None else 1)
-            renders = 1 + attributes + 1 + len(PRUNE_THRESHOLDS) - 1 + len(self.importance_shares)  # references,
-            # perturbed attributes, positions, pruning
+            renders = 1 + attributes + 1 + len(PRUNE_THRESHOLDS) - 1 + len(self.importance_shares) \
+                + (len(DC_ONLY_BARS) - 1)  # references, perturbed attributes, positions, pruning, DC-only bars
             with tqdm(total=probes + renders, desc="rate control: calibrate", unit="step", disable=not self.progress,
                       leave=False) as bar:
                 sh_values = self._sh_values()  # the whole cloud's SH features, once: the probe's extremes, ranges
@@ -292,6 +297,7 @@ class RateController:
                 self.seconds_["probe"] = time.perf_counter() - tic
                 tic = time.perf_counter()
                 sensitivity = self._calibrate(errors, bar)
+                self.dc_only_ = self._fit_dc_only(rows, rates, bar)
                 self.seconds_["calibrate"] = time.perf_counter() - tic
             self.models_["positions"] = self._position_model(coded, sensitivity["positions"])
         grid = np.arange(0, 52)
@@ -364,6 +370,50 @@ class RateController:
             for i, (settings, keep) in enumerate(candidates)]
         self.rendered_mse_ = {name: float(np.mean(per_view[name])) for name in recolours}
         return self._sensitivities(errors, self.rendered_mse_, bar)
+
+    def _fit_dc_only(self, rows: np.ndarray, rates: dict[str, np.ndarray], bar: Any = None) -> list[DcOnlyChoice]:
+        """The DC-only energy bars to choose between, measured (:func:`.rate_sh_degree.fit_choices`) on
+        the probe of ``rows``; bar 0 alone when the template sets its own DC-only Gaussians, the SH
+        stage codes the DC inside its features, or there is no SH attribute."""
+        if "sh" not in rates or self.stage_ is None or self.stage_.uses_dc or self.template.dc_only:
+            return [DcOnlyChoice(0.0)]
+        probe = self.cloud.select(rows)
+        scale = self.cloud.num_gaussians / probe.num_gaussians
+
+        def encode_probe(value: float, qp: int) -> float:
+            point = self._rate_point({a: qp for a in rates} | {"positions": 16}).with_overrides(dc_only_energy=value)
+            sizes = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers).encode(probe) \
+                .attribute_sizes()
+            return scale * sizes.get("sh", 0) + sizes.get("sh_state", 0)
+
+        def zeroing_errors(value: float) -> tuple[float, ...]:
+            out = []
+            for settings, _, prune_mse in self.prune_:
+                keep = self._kept_rows(settings)
+                out.append(max(self._rendered_mse(zeroed(self.cloud.select(keep), value), keep) - prune_mse, 0.0))
+            return tuple(out)
+
+        return fit_choices(self.cloud, encode_probe, zeroing_errors, bar=bar)
+
+    def _kept_rows(self, prune: dict[str, float]) -> np.ndarray:
+        """The rows a pruning candidate (:attr:`prune_`'s rate-point settings) keeps, as :meth:`_prune_candidates` chose them."""
+        n = self.cloud.num_gaussians
+        if prune["keep_share"] < 1.0:
+            return most_important(self.importance_, np.arange(n), keep_count(n, prune["keep_share"]))
+        return np.flatnonzero(self.cloud.activated_opacities() >= prune["min_opacity"])
+
+    def _dc_factor(self, settings: dict[str, int], name: str) -> float:
+        """The factor of attribute ``name``'s bytes under the settings' DC-only bar."""
+        return float(self.dc_only_[settings.get("dc_only", 0)].bytes_factor(settings[name])) if name == "sh" else 1.0
+
+    def _dc_models(self, dc: int) -> dict[str, AttributeModel]:
+        """The attribute models under DC-only choice ``dc`` (the SH bytes scaled by its factor)."""
+        models = dict(self.models_)
+        if dc and "sh" in models:
+            sh = models["sh"]
+            models["sh"] = AttributeModel(sh.name, sh.choices, sh.bytes * self.dc_only_[dc].bytes_factor(sh.choices),
+                                          sh.mse)
+        return models
 
     def _probe(self, rows: np.ndarray, bar: Any = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
         """Per attribute, bytes (scaled to the whole cloud) and attribute MSE at each probe QP of the
@@ -519,34 +569,43 @@ class RateController:
                 f"(about {best:.2f} dB against the uncompressed model)")
         return min(feasible, key=lambda p: (p.predicted_bytes, p.predicted_mse))
 
-    def _hull(self, prune: int | None = None, positions: int | None = None) -> list[Plan]:
+    def _hull(self, prune: int | None = None, positions: int | None = None, dc_only: int | None = None) -> list[Plan]:
         """Plans along the lower convex hull of (bytes, rendered MSE): one per Lagrange multiplier and
         pruning threshold (pruning scales every attribute's bytes by the share kept); ``prune`` (an
-        index into :attr:`prune_`) and ``positions`` (bits) fix those settings."""
+        index into :attr:`prune_`), ``positions`` (bits) and ``dc_only`` (an index into :attr:`dc_only_`)
+        fix those settings."""
         plans: dict[tuple, Plan] = {}
         model = self.models_["positions"]
         for index, (_, kept, _) in enumerate(self.prune_):
             if prune is not None and index != prune:
                 continue
             position_bytes = np.array([self._position_bytes(int(b), index) for b in model.choices])
-            for lam in np.geomspace(1e-3, 1e15, 400):
-                settings = {name: int(m.choices[m.best(lam / kept)]) for name, m in self.models_.items()
-                            if name != "positions"}
-                settings["positions"] = positions if positions is not None else \
-                    int(model.choices[np.argmin(position_bytes + lam * model.mse)])
-                settings["prune"] = index
-                key = tuple(sorted(settings.items()))
-                if key not in plans:
-                    plans[key] = self._predict(settings)
+            for dc in range(len(self.dc_only_)):
+                if dc_only is not None and dc != dc_only:
+                    continue
+                models = self._dc_models(dc)
+                for lam in np.geomspace(1e-3, 1e15, 400):
+                    settings = {name: int(m.choices[m.best(lam / kept)]) for name, m in models.items()
+                                if name != "positions"}
+                    settings["positions"] = positions if positions is not None else \
+                        int(model.choices[np.argmin(position_bytes + lam * model.mse)])
+                    settings["prune"] = index
+                    settings["dc_only"] = dc
+                    key = tuple(sorted(settings.items()))
+                    if key not in plans:
+                        plans[key] = self._predict(settings)
         return list(plans.values())
 
     def _predict(self, settings: dict[str, int]) -> Plan:
         """Bytes and rendered MSE the models predict for ``settings``, corrected by the encodes so far."""
         prune = settings.get("prune", 0)
         _, kept, prune_mse = self.prune_[prune]
-        size = self._overhead_bytes() + self._position_bytes(settings["positions"], prune) + sum(
-            kept * self._bytes(name, settings[name]) for name in self.models_ if name != "positions")
-        mse = prune_mse + sum(m.mse[np.searchsorted(m.choices, settings[n])] for n, m in self.models_.items())
+        dc = self.dc_only_[settings.get("dc_only", 0)]
+        size = self._overhead_bytes() + self._position_bytes(settings["positions"], prune) + kept * dc.flag_bytes + sum(
+            kept * self._dc_factor(settings, name) * self._bytes(name, settings[name])
+            for name in self.models_ if name != "positions")
+        mse = prune_mse + dc.zeroing(prune) + sum(m.mse[np.searchsorted(m.choices, settings[n])]
+                                                  for n, m in self.models_.items())
         return Plan(settings, size, mse, self._rate_point(settings))
 
     def _position_bytes(self, bits: int, prune: int) -> float:
@@ -584,10 +643,10 @@ class RateController:
         sizes = _model_sizes(stream)
         kept = self.prune_[plan.settings.get("prune", 0)][1]
         for name in self.models_:
-            if sizes.get(name, 0) > 0:  # kept unpruned-equivalent; positions as measured (see _position_bytes)
-                scale = 1.0 if name == "positions" else 1.0 / kept
+            if sizes.get(name, 0) > 0:  # kept unpruned-equivalent, without a DC-only bar; positions as measured
+                scale = 1.0 if name == "positions" else 1.0 / (kept * self._dc_factor(plan.settings, name))
                 self._exact.setdefault(name, {})[plan.settings[name]] = float(sizes[name]) * scale
-        coded = sum(sizes.get(name, 0) for name in self.models_)
+        coded = sum(sizes.get(name, 0) for name in self.models_) + sizes.get("sh_dc_only", 0)  # the flags: modelled
         self._exact["overhead"] = {0: float(stream.total_bytes() - coded)}
 
     def _rate_point(self, settings: dict[str, int]) -> RatePoint:
@@ -595,7 +654,7 @@ class RateController:
         point = self.template
         attributes = dict(point.attributes)
         for name, value in settings.items():
-            if name == "prune":
+            if name in ("prune", "dc_only"):
                 continue
             key = self.sh_attribute if name == "sh" else name
             field_name = "bits" if name == "positions" else "qp"
@@ -605,7 +664,8 @@ class RateController:
             attributes[key] = dataclasses.replace(attributes[key], **{field_name: value if isinstance(value, tuple)
                                                                       else int(value)})
         return dataclasses.replace(point, attributes=attributes, name=f"{point.name}+auto",
-                                   **self.prune_[settings.get("prune", 0)][0])
+                                   **self.prune_[settings.get("prune", 0)][0],
+                                   **self.dc_only_[settings.get("dc_only", 0)].rate_point_fields())
 
     # ----------------------------------------------------------- encode
     def encode(self, target: Target) -> Outcome:
@@ -703,10 +763,11 @@ class RateController:
         low = max((size for _, size, psnr in measured if psnr < target.value), default=-math.inf)
         high = min((size for _, size, psnr in measured if psnr > target.value + PSNR_WINDOW), default=math.inf)
         first = measured[0][0].settings
-        plans = self._hull(prune=first.get("prune", 0), positions=first["positions"])
+        plans = self._hull(prune=first.get("prune", 0), positions=first["positions"], dc_only=first.get("dc_only", 0))
         for plan, size, psnr in measured:  # single QP steps from the bracket's ends into it
             if size == low or size == high:
                 plans += self._chain(plan, cheaper=size == high, stop=low if size == high else high)
+                plans += self._single_steps(plan)
         candidates = [(p.predicted_bytes, self._corrected_psnr(p, measured), p) for p in plans
                       if low < p.predicted_bytes < high and _key(p) not in tried]
         if not candidates:
@@ -716,6 +777,19 @@ class RateController:
         if reaching:
             return min(reaching, key=lambda c: (c[0], -c[1]))[2]
         return max(candidates, key=lambda c: (c[1], -c[0]))[2]
+
+    def _single_steps(self, plan: Plan) -> list[Plan]:
+        """Every plan one QP step of one attribute away from ``plan``: the finest moves between two
+        encodes (the :meth:`_step` chain takes only the best move per byte, which can jump over the
+        window when the encodes are a few hundred bytes apart, as on a 2,000-Gaussian cloud)."""
+        out = []
+        for name, model in self.models_.items():
+            if name == "positions":
+                continue
+            i = int(np.searchsorted(model.choices, plan.settings[name]))
+            out += [self._predict({**plan.settings, name: int(model.choices[j])})
+                    for j in (i - 1, i + 1) if 0 <= j < model.choices.size]
+        return out
 
     def _chain(self, plan: Plan, *, cheaper: bool, stop: float, steps: int = 64) -> list[Plan]:
         """Plans one :meth:`_step` apart from ``plan`` (fewer bytes when ``cheaper``) until the

@@ -24,7 +24,9 @@ Attributes: ``positions, rotation, scale, opacity, sh_dc, sh_ac, sh_features,
 sh_labels``. No QP means lossless; lossless data of 9-16 bits goes into one
 plane (``layout: single``, the default except for positions and labels) or
 two 8-bit planes (``split8``). ``sh_ac`` takes one QP or one per SH degree
-(1, 2, 3, ...): the ladder. ``sh_features`` (default: as ``sh_ac``) codes the
+(1, 2, 3, ...): the ladder. ``rotation`` takes one QP or two: ``[x, y, z, w]``'s QP for the
+x, y, z chunk and one for the w chunk (the renderer normalises the quaternion, so most of w's
+error does not show: docs/rate_control.md, "Controller version 7"). ``sh_features`` (default: as ``sh_ac``) codes the
 output of a transforming stage (pca, lst); ``sh_labels`` (default: the codec and
 layout of ``positions``) codes the integer labels of the ``vq`` stage. With
 ``allocation: waterfill`` (``sh_ac`` / ``sh_features``, one base QP) every feature gets its
@@ -357,7 +359,10 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
         spec_options = {**inherited, **where.mapping(over.get("codec_options"), f"attributes.{name}.codec_options")}
         spec_bits = where.integer(over.get("bits", default_bits), f"attributes.{name}.bits", 1, 16)
         qp_key = f"attributes.{name}.qp" if "qp" in over else f"qp.{name}"
-        qp = _qp(where, over["qp"] if "qp" in over else qps.get(name), qp_key, ladder=name in ("sh_ac", "sh_features"))
+        qp = _qp(where, over["qp"] if "qp" in over else qps.get(name), qp_key,
+                 ladder=name in ("sh_ac", "sh_features", "rotation"))
+        if name == "rotation" and isinstance(qp, tuple) and len(qp) > 2:
+            raise where.error(qp_key, f"rotation takes one QP or two (x, y, z and w), got {len(qp)}")
         default_layout = "split8" if name in LOSSLESS_ATTRIBUTES else "single"
         layout = where.choice(over.get("layout", default_layout), LAYOUTS, f"attributes.{name}.layout")
         allocation = where.choice(over.get("allocation", "degree"), ALLOCATIONS, f"attributes.{name}.allocation")
