@@ -358,11 +358,6 @@ def _block_until_converged(feat, idx, target, pos_y, pos_x, geom, block, improve
             break
 
 
-#: Blocks of one offset are handed out in runs of about this many cells (one scratch per run:
-#: at 1M cells, radii 1-4 have 62,500 blocks of 16 cells each).
-RUN_CELLS = 4096
-
-
 @njit(cache=True)
 def _block_run(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats, run, per_run):
     """Blocks ``run * per_run ..`` (at most ``per_run``) one after the other, with one scratch."""
@@ -372,19 +367,19 @@ def _block_run(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats, 
 
 
 @njit(parallel=True, cache=True)
-def _offset_blocks_parallel(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats):
-    per_run = max(1, RUN_CELLS // (geom[2] * geom[3]))
+def _offset_blocks_parallel(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats, per_run):
     for run in prange((stats.shape[0] + per_run - 1) // per_run):
         _block_run(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats, run, per_run)
 
 
 @njit(cache=True)
-def _offset_blocks_serial(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats):
+def _offset_blocks_serial(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats, per_run):
     _block_run(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats, 0, stats.shape[0])
 
 
 @njit(cache=True)
-def sort_one_radius_blockwise(feat, idx, target, pos_y, pos_x, geom, stats, shifts, improvement_break, min_offsets, parallel):
+def sort_one_radius_blockwise(feat, idx, target, pos_y, pos_x, geom, stats, shifts, improvement_break, min_offsets, parallel,
+                              per_run):
     """PLAS's loop for one target, for many small blocks: each block runs its own passes.
 
     Blocks are independent while the offset stays, so every block is improved
@@ -392,7 +387,8 @@ def sort_one_radius_blockwise(feat, idx, target, pos_y, pos_x, geom, stats, shif
     offset, and a block stays in the cache for all its passes). An offset
     counts as improving when its first passes together gained at least
     ``improvement_break``; the loop over offsets ends as in :func:`sort_one_radius`.
-    ``stats`` is (blocks, 3) scratch. Returns the block passes run, averaged over blocks.
+    ``stats`` is (blocks, 3) scratch; blocks are handed out in runs of ``per_run`` (one scratch
+    per run). Returns the block passes run, averaged over blocks.
     """
     n_blocks = stats.shape[0]
     total = 0.0
@@ -401,9 +397,9 @@ def sort_one_radius_blockwise(feat, idx, target, pos_y, pos_x, geom, stats, shif
         geom[4] = shifts[offset, 0]
         geom[5] = shifts[offset, 1]
         if parallel:
-            _offset_blocks_parallel(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats)
+            _offset_blocks_parallel(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats, per_run)
         else:
-            _offset_blocks_serial(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats)
+            _offset_blocks_serial(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats, per_run)
         before = 0.0
         after = 0.0
         for block in range(n_blocks):  # fixed order: the same sums on any number of threads

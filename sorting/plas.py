@@ -20,9 +20,10 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from sorting import _groups, _kernels
+from sorting._prep import scatter_centred
 from sorting.blur import BORDERS, blur_grid
 from sorting.errors import SortingError
-from sorting.grid import invert_order
+from sorting.grid import PARALLEL_ROWS, invert_order
 from sorting.morton import morton_order
 
 
@@ -143,9 +144,13 @@ def make_state(features: np.ndarray, shape: tuple[int, int], cells: np.ndarray) 
     n, c = features.shape
     k = -(-(c + 2) // 8) * 8
     feat = np.zeros((h * w, k), dtype=np.float32)
-    centred = features.astype(np.float64) - features.astype(np.float64).mean(axis=0)
-    feat[cells, :c] = centred.astype(np.float32)
-    feat[cells, k - 2] = 1.0
+    if n >= PARALLEL_ROWS:  # the same values without float64 copies, on all threads
+        scatter_centred(feat, np.ascontiguousarray(cells, dtype=np.int64), features,
+                        features.astype(np.float64).mean(axis=0))
+    else:
+        centred = features.astype(np.float64) - features.astype(np.float64).mean(axis=0)
+        feat[cells, :c] = centred.astype(np.float32)
+        feat[cells, k - 2] = 1.0
     idx = np.full(h * w, -1, dtype=np.int64)
     idx[cells] = np.arange(n, dtype=np.int64)
     return PlasState(feat, idx, (h, w))
@@ -200,6 +205,9 @@ WARM_GRID = 131072
 BLOCKWISE_GRID = 262144
 BLOCKWISE_BLOCKS = 4
 BLOCKWISE_CELLS = 65536
+#: ... handed out to the threads in runs of about this many cells (one scratch per run: at 1M
+#: cells, radii 1-4 have 62,500 blocks of 16 cells each).
+RUN_CELLS = 4096
 #: Distinct random groupings per radius in block-by-block mode (pass p uses grouping p % TABLES).
 TABLES = 16
 
@@ -234,7 +242,7 @@ def sort_radius(state: PlasState, radius: int, sched: PlasSchedule, rng: np.rand
         return float(
             _kernels.sort_one_radius_blockwise(
                 state.feat, state.idx, target, pos_y, pos_x, geom, stats, shifts,
-                float(sched.improvement_break), int(sched.min_offsets), parallel,
+                float(sched.improvement_break), int(sched.min_offsets), parallel, max(1, RUN_CELLS // (bh * bw)),
             )
         )
     n_chunks = -(-n_groups // _kernels.CHUNK)

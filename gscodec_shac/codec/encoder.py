@@ -31,6 +31,7 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 import numpy as np
 
 import gscodec_shac
+import gscodec_shac.openmp  # noqa: F401  (numba's OpenMP threads sleep between the sort's parallel regions)
 from gscodec_shac.camera import Camera
 from gscodec_shac.codec import quantize as qz
 from gscodec_shac.codec import sh_degree as degrees
