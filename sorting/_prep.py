@@ -85,3 +85,48 @@ def scatter_centred(feat, cells, x, mean):
             for j in range(c):
                 feat[row, j] = np.float32(np.float64(x[i, j]) - mean[j])
             feat[row, flag] = 1.0
+
+
+@njit(cache=True, inline="always")
+def _squared_norm(x, row):
+    """``einsum("ij,ij->i")`` of one row of (N, K) float32, K a multiple of 4, summed as numpy's 4-lane
+    kernel sums it: lanes ``c % 4`` over blocks of 16 channels (last first) then 4, then lanes (0+1)+(2+3)."""
+    k = x.shape[1]
+    a0 = a1 = a2 = a3 = np.float32(0.0)
+    c = 0
+    while c + 16 <= k:
+        for q in (12, 8, 4, 0):
+            a0 += x[row, c + q] * x[row, c + q]
+            a1 += x[row, c + q + 1] * x[row, c + q + 1]
+            a2 += x[row, c + q + 2] * x[row, c + q + 2]
+            a3 += x[row, c + q + 3] * x[row, c + q + 3]
+        c += 16
+    while c < k:
+        a0 += x[row, c] * x[row, c]
+        a1 += x[row, c + 1] * x[row, c + 1]
+        a2 += x[row, c + 2] * x[row, c + 2]
+        a3 += x[row, c + 3] * x[row, c + 3]
+        c += 4
+    return (a0 + a1) + (a2 + a3)
+
+
+@njit(parallel=True, cache=True)
+def finish_target(blurred, divide):
+    """``plas.finish_target`` in place on all threads: with ``divide`` each row divided by its item
+    weight (channel K-2; a row whose weight is at most float32(1e-6) zeroed), then channels K-2 and K-1
+    zeroed and channel K-1 set to the row's squared norm."""
+    n, k = blurred.shape
+    tiny = np.float32(1e-6)
+    for t in prange((n + ROWS - 1) // ROWS):
+        for i in range(t * ROWS, min(n, (t + 1) * ROWS)):
+            if divide:
+                weight = blurred[i, k - 2]
+                if weight > tiny:
+                    for j in range(k):
+                        blurred[i, j] = blurred[i, j] / weight
+                else:
+                    for j in range(k):
+                        blurred[i, j] = 0.0
+            blurred[i, k - 2] = 0.0
+            blurred[i, k - 1] = 0.0
+            blurred[i, k - 1] = _squared_norm(blurred, i)

@@ -20,6 +20,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from sorting import _groups, _kernels
+from sorting._prep import finish_target as parallel_finish
 from sorting._prep import scatter_centred
 from sorting.blur import BORDERS, blur_grid
 from sorting.errors import SortingError
@@ -173,6 +174,9 @@ def finish_target(blurred: np.ndarray, state: PlasState) -> np.ndarray:
     """The blurred cells (H*W, K) made the target, in place: divided by the blurred item flag when
     cells are empty, channel ``K-2`` zeroed, channel ``K-1`` set to the squared norm."""
     k = blurred.shape[1]
+    if blurred.shape[0] >= PARALLEL_ROWS:  # the same values on all threads, without temporaries
+        parallel_finish(blurred, not state.valid.all())
+        return blurred
     if not state.valid.all():
         weight = blurred[:, k - 2 : k - 1].copy()
         np.divide(blurred, weight, out=blurred, where=weight > 1e-6)
