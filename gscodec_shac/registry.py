@@ -6,12 +6,17 @@ recipes, instances). They join with :meth:`Registry.register`, a decorator (thei
 first use, so looking one up stays cheap and a module that needs torch is only imported
 when asked for. Adding one is a new module in the folder plus its name in the
 registry's ``builtin`` list.
+
+``builtin`` may also map each built-in name to the one module that registers it: then
+checking a name (:meth:`Registry.names`, ``in``) imports nothing and :meth:`Registry.get`
+imports only that name's module, so reading a stream's header does not load the image
+libraries of codecs it does not use.
 """
 
 from __future__ import annotations
 
 import importlib
-from typing import Generic, Iterator, Sequence, TypeVar
+from typing import Generic, Iterator, Mapping, Sequence, TypeVar
 
 from gscodec_shac.errors import GscodecError, ValidationError
 
@@ -21,12 +26,15 @@ T = TypeVar("T")
 class Registry(Generic[T]):
     """Classes of one ``kind`` by name; ``builtin`` modules (under ``package``) register on first use."""
 
-    def __init__(self, kind: str, package: str, builtin: Sequence[str], error: type[GscodecError] = ValidationError) -> None:
+    def __init__(self, kind: str, package: str, builtin: Sequence[str] | Mapping[str, str],
+                 error: type[GscodecError] = ValidationError) -> None:
         self.kind = kind
         self.package = package
-        self.builtin = tuple(builtin)
+        self.modules: dict[str, str] = dict(builtin) if isinstance(builtin, Mapping) else {}
+        self.builtin = tuple(dict.fromkeys(self.modules.values())) if self.modules else tuple(builtin)
         self.error = error
         self._classes: dict[str, type[T]] = {}
+        self._imported: set[str] = set()
         self._loaded = False
 
     def register(self, cls: type[T]) -> type[T]:
@@ -39,17 +47,23 @@ class Registry(Generic[T]):
 
     def get(self, name: str) -> type[T]:
         """The class called ``name``; an error naming the known ones otherwise."""
-        self._load()
+        if isinstance(name, str) and name in self.modules:
+            self._import(self.modules[name])
+        else:
+            self._load()
         if not isinstance(name, str) or name not in self._classes:
             raise self.error(f"unknown {self.kind} {name!r}; known: {', '.join(self.names())}")
         return self._classes[name]
 
     def names(self) -> list[str]:
         """Every registered name, sorted."""
-        self._load()
-        return sorted(self._classes)
+        if not self.modules:
+            self._load()
+        return sorted(set(self._classes) | set(self.modules))
 
     def __contains__(self, name: object) -> bool:
+        if isinstance(name, str) and name in self.modules:
+            return True
         self._load()
         return name in self._classes
 
@@ -64,5 +78,10 @@ class Registry(Generic[T]):
         if self._loaded:
             return
         for module in self.builtin:
-            importlib.import_module(f"{self.package}.{module}")
+            self._import(module)
         self._loaded = True
+
+    def _import(self, module: str) -> None:
+        if module not in self._imported:
+            importlib.import_module(f"{self.package}.{module}")
+            self._imported.add(module)

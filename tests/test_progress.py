@@ -84,7 +84,7 @@ def test_the_notice_prints_once_when_a_kernel_compiles(monkeypatch):
     monkeypatch.setattr(kernels, "_announced", [])
     out = io.StringIO()
     assert kernels.announce("info", out) is False  # a command without kernels: no listener
-    assert kernels.announce("decode", out) is True
+    assert kernels.announce("encode", out) is True
     assert out.getvalue() == ""  # nothing compiled yet
 
     @numba.njit  # not cached: this call compiles

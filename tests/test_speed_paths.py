@@ -2,6 +2,7 @@
 
 * a process that only decodes imports neither numba nor the sorting kernels (checked in a
   fresh interpreter, for every stored legacy stream);
+* it imports only the grid codecs and the SH stage its stream names (cv2 alone took 0.2 s);
 * the threaded, numpy dequantisation equals the per-value formula;
 * the numpy unpacking of set-coded positions equals the compiled packer's inverse,
   across block boundaries;
@@ -22,8 +23,11 @@ import pytest
 
 from gscodec_shac.codec import positions
 from gscodec_shac.codec.container import Bitstream
+from gscodec_shac.codec.grid.base import CODECS
+from gscodec_shac.codec.header import read_header
 from gscodec_shac.codec.quantize import Quantizer
 from gscodec_shac.io.ply import cloud_to_structured, read_ply, write_ply
+from gscodec_shac.shac.base import STAGES
 
 ROOT = Path(__file__).resolve().parents[1]
 STREAMS = sorted((ROOT / "tests" / "fixtures" / "streams").glob("v*/*.gsc"))
@@ -47,6 +51,46 @@ def test_decoding_imports_no_compiled_kernels(tmp_path):
     dynamic = [p for p in STREAMS if "deformation" in Bitstream.read(p).features]
     assert len(list(tmp_path.glob("out*.ply"))) == len(STREAMS) - len(dynamic)
     assert len(list(tmp_path.glob("dir*/point_cloud.ply"))) == len(dynamic)
+
+
+def test_the_decode_command_imports_no_numba(tmp_path):
+    script = (
+        "import sys\n"
+        "from gscodec_shac.cli import main\n"
+        f"assert main(['decode', {str(STREAMS[-1])!r}, {str(tmp_path / 'out.ply')!r}]) == 0\n"
+        "print('numba' in sys.modules)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True)
+    assert done.stdout.strip().splitlines()[-1] == "False"
+
+
+@pytest.mark.parametrize("name", ["v2.0/ladder_rp6_pca.gsc", "v1.0/recommended_rp3_lst.gsc", "v1.0/gsplat_png_vq.gsc"])
+def test_decoding_imports_only_the_codecs_and_stage_the_stream_names(tmp_path, name):
+    path = ROOT / "tests" / "fixtures" / "streams" / name
+    header = read_header(Bitstream.read(path))
+    script = (
+        "import json, sys\n"
+        "from gscodec_shac.codec import decode_file\n"
+        f"decode_file({str(path)!r}, {str(tmp_path / 'out.ply')!r})\n"
+        "print(json.dumps(sorted(sys.modules)))\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True)
+    imported = set(json.loads(done.stdout.strip().splitlines()[-1]))
+    codecs = {m for m in CODECS.modules.values() if f"gscodec_shac.codec.grid.{m}" in imported}
+    stages = {m for m in STAGES.modules.values() if f"gscodec_shac.shac.{m}" in imported}
+    assert codecs == {CODECS.modules[c.name] for c in header.codecs}
+    assert stages == {STAGES.modules[header.sh.stage]}
+    assert ("cv2" in imported) == ("png" in codecs)
+
+
+def test_each_builtin_name_is_registered_by_the_module_named_for_it():
+    for registry, package in ((CODECS, "gscodec_shac.codec.grid"), (STAGES, "gscodec_shac.shac")):
+        registered = dict(registry.items())  # imports every built-in module
+        assert sorted(registered) == sorted(registry.modules)
+        for name, module in registry.modules.items():
+            assert registered[name].__module__ == f"{package}.{module}"
 
 
 @pytest.mark.parametrize("bits", [1, 10, 12])

@@ -264,7 +264,9 @@ class ShStage(ABC):
 
 
 # ------------------------------------------------------------------------ registry
-STAGES: Registry[ShStage] = Registry("SH stage", "gscodec_shac.shac", ("identity", "truncation", "pca", "lst", "vq", "vq_pca", "spatial_pca"))
+STAGES: Registry[ShStage] = Registry("SH stage", "gscodec_shac.shac", {
+    "none": "identity", "trunc": "truncation", "pca": "pca", "lst": "lst", "vq": "vq", "vq-pca": "vq_pca",
+    "pca-spatial": "spatial_pca"})
 register_stage = STAGES.register
 
 

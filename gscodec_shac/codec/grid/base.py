@@ -129,7 +129,8 @@ def split_chunks(data: bytes, count: int, name: str) -> list[bytes]:
     return chunks
 
 
-CODECS: Registry[GridCodec] = Registry("grid codec", "gscodec_shac.codec.grid", ("raw", "png", "jpegls", "hevc", "hm"))
+CODECS: Registry[GridCodec] = Registry("grid codec", "gscodec_shac.codec.grid",
+                                     {name: name for name in ("raw", "png", "jpegls", "hevc", "hm")})
 register_codec = CODECS.register
 
 
