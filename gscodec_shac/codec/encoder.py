@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 import gscodec_shac
 import gscodec_shac.openmp  # noqa: F401  (numba's OpenMP threads sleep between the sort's parallel regions)
@@ -276,6 +275,8 @@ class Encoder:
                 values = None
             # one BLAS thread: the scheduler is coding the other attributes meanwhile (a second BLAS
             # thread only competed with x265 and spun: 0.6 s of CPU at 1M Gaussians, the same bytes)
+            from threadpoolctl import threadpool_limits  # only an encode needs it
+
             with self._timed("sh_stage"), threadpool_limits(1, user_api="blas"):
                 features = self._sh_features(stage, grid_cloud, ac, dc_only_weight)
             ac = None
