@@ -358,6 +358,7 @@ def test_a_dead_x265_worker_is_replaced_and_the_piece_coded_again(monkeypatch):
     frames = list(_x265_planes()[:1])
     options = {"preset": "fast", "x265-params": "qp=30:info=0:log-level=error:frame-threads=1"}
     expected = encode_frames(frames, "gray10le", options)
+    x265_processes.shutdown()  # earlier tests' idle workers (parallel encodes leave several) would die too
     assert x265_processes.encode(frames, "gray10le", options) == expected
     with x265_processes._lock:  # the worker waiting for the next piece dies (as when x265 crashes)
         idle = list(x265_processes._idle)
