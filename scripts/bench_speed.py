@@ -8,17 +8,20 @@ its children, from ``os.wait4``) and peak RSS:
 * ``decode``: the stream back to a PLY; ``decode_arrays``: the stream to arrays only
   (the :class:`~gscodec_shac.codec.Decoder` in a fresh interpreter, no file written);
 * ``target_bpg``: ``encode --target-bpg B`` (the controller picks the SH settings; skipped
-  with ``--no-target``);
+  with ``--no-target``); ``chosen_fixed``: a fixed encode (``-r chosen.yaml:chosen``) of the
+  settings that run chose (its stream's QPs, position bits and pruning on the SHAC-auto
+  template; the chunks that differ from the target file's are printed);
 * ``spz_write`` / ``spz_read``: ``splat-transform`` PLY -> SPZ and SPZ -> PLY of the same
   file (skipped, with a line saying why, when node or the tool is absent);
 
 plus ``startup``: ``gscodec-shac decode`` of a 300-Gaussian fixture stream (start-up cost).
 ``--baseline ../main`` runs the encode, every decode step and the target encode under that
-checkout too, right before ours (the baseline's stream is overwritten by ours; the two fixed
-encodes' sha256 are compared and printed), and prints the baseline's target / encode ratio
-beside ours. ``--repeat R`` runs each paired encode R times, the baseline first in odd rounds and
-ours first in even ones (the load of a shared machine drifts).
-Ratios (target / encode, decode / spz_read, encode / spz_write) are printed; all rows go
+checkout too, right before ours (the baseline's stream is overwritten by ours, except the target
+stream, ``_target_baseline.gsc``; the two fixed encodes' sha256 are compared and printed), and
+prints the baseline's ratios beside ours. ``--repeat R`` runs each paired encode R times, the
+baseline first in odd rounds and ours first in even ones (the load of a shared machine drifts).
+Ratios (target / encode, target / the fixed encode of its own chosen settings, decode /
+spz_read, encode / spz_write) are printed; all rows go
 to ``OUT/bench_speed.json`` and ``.csv`` with the load average at each step.
 
     python scripts/bench_speed.py --sizes 250k,1M --out ../out/speed
@@ -118,6 +121,39 @@ def measured(command: list[str], nice: int, root: Path = ROOT) -> dict:
             "output": output.decode().strip().splitlines()[-1][-200:] if output.strip() else ""}
 
 
+def chosen_rate_point(stream: Path, out: Path) -> Path | None:
+    """The settings a ``--target-bpg`` encode chose (its stream's rate point: QPs, position bits,
+    pruning) written as the point ``chosen`` of a rate-point file ``out`` on the SHAC-auto template,
+    so a fixed encode codes the same configuration; None when the stream's rate point is not a
+    SHAC-auto choice."""
+    import yaml
+
+    from gscodec_shac.codec import Bitstream
+
+    point = Bitstream.read(stream).header.get("rate_point") or {}
+    if not str(point.get("name", "")).endswith("+auto"):
+        return None
+    document = yaml.safe_load((ROOT / "rate_points" / "shac_auto.yaml").read_text())
+    settings = document["points"]["template"]
+    attributes = point["attributes"]
+    settings["qp"].update({name: attributes[name]["qp"] for name in ("opacity", "rotation", "scale", "sh_dc",
+                                                                     "sh_features")})
+    settings["attributes"] = {"positions": {"bits": attributes["positions"]["bits"]}}
+    settings["prune"] = dict(point.get("prune") or {})
+    document["points"] = {"chosen": settings}
+    out.write_text(yaml.safe_dump(document, sort_keys=False))
+    return out
+
+
+def differing_chunks(a: Path, b: Path) -> list[str]:
+    """The chunks two streams do not share byte for byte (their headers aside), with both sizes."""
+    from gscodec_shac.codec import Bitstream
+
+    first, second = ({chunk.name: chunk.data for chunk in Bitstream.read(path).chunks} for path in (a, b))
+    return [f"{name} ({len(first.get(name, b''))} / {len(second.get(name, b''))} bytes)"
+            for name in sorted(set(first) | set(second)) if first.get(name) != second.get(name)]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", default="250k,1M,4M", help="comma-separated Gaussian counts (250k,1M,4M)")
@@ -180,14 +216,37 @@ def main(argv: list[str] | None = None) -> int:
         paired_step(size, "decode_arrays", [sys.executable, "-c", DECODE_ARRAYS, str(gsc)])
         decode = paired_step(size, "decode", [*cli, "decode", str(gsc), str(dec), "--force"])
         if not args.no_target:
-            aimed_gsc = args.out / size / f"s{size}_target.gsc"
-            paired_step(size, "target_bpg", [*cli, "encode", str(ply), str(aimed_gsc), "--target-bpg",
-                                             str(args.target_bpg), "--force"])
-            for suffix in ("@baseline",) * (args.baseline is not None) + ("",):
-                fixed, aimed = (next(r for r in reversed(rows) if r["size"] == size and r["step"] == step + suffix)
-                                for step in ("encode", "target_bpg"))
-                print(f"{size:>5} ratio target / encode{suffix}: {aimed['wall_s'] / fixed['wall_s']:.2f} (wall), "
-                      f"{aimed['cpu_s'] / fixed['cpu_s']:.2f} (cpu)")
+            checkouts = ([("@baseline", args.baseline.resolve())] if args.baseline is not None else []) + [("", ROOT)]
+            aimed = {suffix: args.out / size / f"s{size}_target{suffix.replace('@', '_')}.gsc"
+                     for suffix, _ in checkouts}
+            for suffix, root in checkouts:
+                record(size, "target_bpg" + suffix, measured(
+                    [*cli, "encode", str(ply), str(aimed[suffix]), "--target-bpg", str(args.target_bpg), "--force"],
+                    args.nice, root))
+            for suffix, root in checkouts:  # the controller's choice encoded at a fixed rate point
+                chosen = chosen_rate_point(aimed[suffix], args.out / size / f"chosen{suffix.replace('@', '_')}.yaml")
+                if chosen is None:
+                    print(f"{size:>5} chosen settings{suffix}: not a rate point (skipped)")
+                    continue
+                chosen_gsc = aimed[suffix].with_name(aimed[suffix].stem + "_chosen_fixed.gsc")
+                record(size, "chosen_fixed" + suffix, measured(
+                    [*cli, "encode", str(ply), str(chosen_gsc), "-r", f"{chosen}:chosen", "--force"], args.nice, root))
+                differ = differing_chunks(aimed[suffix], chosen_gsc)
+                rows[-1]["same_bytes"] = not differ
+                chunks = "chunks unlike the target file: " + ", ".join(differ) if differ else \
+                    "the same chunks as the target file"
+                print(f"{size:>5} chosen_fixed{suffix}: {chosen_gsc.stat().st_size:,} bytes, {chunks} (the headers "
+                      "differ in the rate point's name and the target)", flush=True)
+            for suffix, _ in checkouts:
+                fixed, target = (next(r for r in reversed(rows) if r["size"] == size and r["step"] == step + suffix)
+                                 for step in ("encode", "target_bpg"))
+                print(f"{size:>5} ratio target / encode{suffix}: {target['wall_s'] / fixed['wall_s']:.2f} (wall), "
+                      f"{target['cpu_s'] / fixed['cpu_s']:.2f} (cpu)")
+                own = next((r for r in reversed(rows) if r["size"] == size and r["step"] == "chosen_fixed" + suffix),
+                           None)
+                if own is not None:
+                    print(f"{size:>5} ratio target / fixed encode of its own chosen settings{suffix}: "
+                          f"{target['wall_s'] / own['wall_s']:.2f} (wall), {target['cpu_s'] / own['cpu_s']:.2f} (cpu)")
         if peer is not None:
             spz = args.out / size / f"s{size}.spz"
             write = record(size, "spz_write", measured([str(peer), "-w", "-q", str(ply), str(spz)], args.nice))

@@ -11,7 +11,7 @@ from gscodec_shac.cli import main
 from gscodec_shac.codec import Decoder, Encoder, load_rate_point
 from gscodec_shac.codec.importance import gaussian_importance, importance_views, keep_count, most_important
 from gscodec_shac.codec.rate_points import load_rate_point_file
-from gscodec_shac.errors import RatePointError
+from gscodec_shac.errors import RatePointError, ValidationError
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.io.ply import write_ply
 from gscodec_shac.render import Renderer
@@ -123,3 +123,14 @@ def test_cli_prune_keep(tmp_path, small_scene, capsys):
 
     summary = json.loads(capsys.readouterr().out)
     assert summary["num_gaussians"] == keep_count(small_scene.cloud.num_gaussians, 0.5)
+
+
+def test_importance_from_a_given_renderer_is_the_same(small_scene):
+    """The rate controller ranks with the renderer it calibrates with (whose colours another view left
+    set: the weights do not depend on them)."""
+    cloud, views = small_scene.cloud, small_scene.cameras[:3]
+    renderer = Renderer(cloud)
+    renderer.render(small_scene.cameras[-1])
+    assert np.array_equal(gaussian_importance(cloud, views, renderer=renderer), gaussian_importance(cloud, views))
+    with pytest.raises(ValidationError, match="another cloud"):
+        gaussian_importance(cloud.select(np.arange(10)), views, renderer=renderer)

@@ -161,9 +161,25 @@ def test_importance_pruning_is_a_candidate_next_to_the_opacity_thresholds(contro
     assert stream.header["prune"]["keep_share"] == IMPORTANCE_SHARES[1]
 
 
+def test_calibration_renders_from_one_frame_are_those_of_fresh_renders(controller, small_scene):
+    """The references, pruned subsets and recoloured probes (DC, SH features as decoded) are rendered
+    from one prepared frame of the cloud per view: their rendered MSEs are those of fresh renders."""
+    from gscodec_shac.codec.rate_control import _with_decoded
+
+    cloud = small_scene.cloud
+    candidates = controller._prune_candidates()
+    assert len(candidates) == len(controller.prune_) - 1 > 0
+    for (settings, keep), (prune, kept, mse) in zip(candidates, controller.prune_[1:]):
+        assert settings == prune and kept == np.count_nonzero(keep) / cloud.num_gaussians
+        assert mse == controller._rendered_mse(cloud.select(keep))
+    rows, decoded = controller._probe_decoded
+    for name in ("sh_dc", "sh"):
+        assert controller.rendered_mse_[name] == controller._rendered_mse(_with_decoded(cloud, name, rows, decoded)) > 0
+
+
 def test_without_importance_shares_only_opacity_thresholds_are_candidates(small_scene):
     bare = RateController(small_scene.cloud, views=small_scene.cameras, importance_shares=())
-    assert all(prune["keep_share"] == 1.0 for prune, _, _ in bare._prune_model())
+    assert all(prune["keep_share"] == 1.0 for prune, _ in bare._prune_candidates())
 
 
 def test_importance_is_ranked_on_cameras_the_pruning_error_is_not_judged_on(controller, small_scene):

@@ -282,3 +282,36 @@ def test_a_renderer_given_the_covariances_renders_the_same_images():
             assert np.array_equal(given.render(camera).image, fresh.render(camera).image)
     with pytest.raises(ValidationError, match="covariances have shape"):
         Renderer(cloud, covariances=whole.cov3[:10])
+
+
+def test_variants_from_one_prepared_frame_render_as_a_fresh_renderer():
+    """The rate controller renders subsets (pruning) and recoloured clouds (SH of some rows as decoded)
+    from the whole cloud's prepared frame (gscodec_shac/render/variants.py): only the blend runs
+    again, and the images equal a fresh renderer's of the variant bit for bit, for every kind of
+    camera, over a non-black background, also after other variants were rendered from the frame."""
+    from gscodec_shac.render.variants import FrameVariants
+
+    rng = np.random.default_rng(11)
+    cloud = random_cloud(rng, 400, 3)
+    cloud = cloud.replace(means=np.concatenate([cloud.means[:-20], cloud.means[:20]]))  # equal depths: ties by row
+    whole = Renderer(cloud)
+    keep = np.sort(rng.choice(400, 230, replace=False))
+    rows = rng.choice(400, 90, replace=False)  # any order, as the probe's decoded rows come
+    new_dc, new_rest = cloud.sh_dc.copy(), cloud.sh_rest.copy()
+    new_dc[rows] += rng.normal(0.0, 0.2, (90, 3))
+    new_rest[rows] += rng.normal(0.0, 0.1, (90, 15, 3))
+    recoloured = cloud.replace(sh_dc=new_dc, sh_rest=new_rest)
+    sh_dc, sh_rest = recoloured.sh_dc[rows], recoloured.sh_rest[rows]
+    background = (0.2, 0.9, 1.0)
+    for camera in cameras():
+        frame = FrameVariants(whole, camera, background)
+        for _ in range(2):  # the frame is left as it was by every variant
+            assert np.array_equal(frame.image(), render(cloud, camera, background=background).image)
+            pruned = frame.subset(keep)
+            assert np.array_equal(pruned, render(cloud.select(keep), camera, background=background).image)
+            mask = np.zeros(400, dtype=bool)
+            mask[keep] = True
+            assert np.array_equal(frame.subset(mask), pruned)
+            image = frame.recoloured(rows, sh_dc, sh_rest)
+            assert np.array_equal(image, render(recoloured, camera, background=background).image)
+            assert not np.array_equal(image, frame.image())

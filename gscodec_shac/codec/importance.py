@@ -20,13 +20,16 @@ is seen in prunes worse (docs/rate_control.md, "Importance pruning").
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
 from gscodec_shac.camera import Camera, orbit_views, spread_views
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.gaussians import GaussianCloud
+
+if TYPE_CHECKING:
+    from gscodec_shac.render import Renderer
 
 #: Orbit views used when the scene has no cameras, and their width (that of ``info --compare``).
 ORBIT_VIEWS = 24
@@ -45,13 +48,17 @@ def importance_views(cloud: GaussianCloud, cameras: Sequence[Camera] | None = No
     return orbit_views(cloud.means, ORBIT_VIEWS, min(width, ORBIT_WIDTH), up=up, opacities=cloud.activated_opacities())
 
 
-def gaussian_importance(cloud: GaussianCloud, views: Sequence[Camera]) -> np.ndarray:
-    """(N,) float64 mean over ``views`` of each Gaussian's summed blending weight per pixel."""
+def gaussian_importance(cloud: GaussianCloud, views: Sequence[Camera], *,
+                        renderer: "Renderer | None" = None) -> np.ndarray:
+    """(N,) float64 mean over ``views`` of each Gaussian's summed blending weight per pixel (``renderer``:
+    one of ``cloud`` to use, else a new one)."""
     from gscodec_shac.render import Renderer
 
     if not views:
         raise ValidationError("importance needs at least one view")
-    renderer = Renderer(cloud)
+    if renderer is not None and renderer.cloud is not cloud:
+        raise ValidationError("importance: the renderer given renders another cloud")
+    renderer = renderer or Renderer(cloud)
     total = np.zeros(cloud.num_gaussians)
     for view in views:
         total += renderer.contributions(view) / (view.width * view.height)

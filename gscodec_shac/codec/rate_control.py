@@ -261,12 +261,12 @@ class RateController:
         self._exact: dict[str, dict[int, float]] = {}
         self._probe_decoded: tuple[np.ndarray, GaussianCloud] | None = None  # (rows, decoded) at SENSITIVITY_QP
         self._sh_points: dict[int, dict[int, float]] = {}  # SH feature (-1: side information) -> {QP: bytes}
+        #: the rendered MSE of each attribute of the probe as decoded (the sensitivities' numerators)
+        self.rendered_mse_: dict[str, float] = {}
 
     # -------------------------------------------------------------- fit
     def fit(self) -> "RateController":
         """Measure the per-attribute models (probe encodes, position bits, render sensitivities)."""
-        from gscodec_shac.render import Renderer
-
         tic = time.perf_counter()
         cloud = self.cloud
         # the exact position bits (LZMA and sorts, which release the GIL) are coded beside the probe
@@ -282,10 +282,6 @@ class RateController:
             # perturbed attributes, positions, pruning
             with tqdm(total=probes + renders, desc="rate control: calibrate", unit="step", disable=not self.progress,
                       leave=False) as bar:
-                renderer = Renderer(cloud)
-                self._covariances = renderer.cov3
-                self._references = [renderer.render(view, background=self.background).image for view in self.views]
-                bar.update(1)
                 sh_values = self._sh_values()  # the whole cloud's SH features, once: the probe's extremes, ranges
                 sh_ranges = None if sh_values is None else np.ptp(sh_values, axis=0)
                 rows = _probe_rows(cloud)
@@ -295,8 +291,7 @@ class RateController:
                 rates, errors, overhead = self._probe(rows, bar)
                 self.seconds_["probe"] = time.perf_counter() - tic
                 tic = time.perf_counter()
-                sensitivity = self._sensitivities(errors, bar)
-                self.prune_ = self._prune_model(bar)
+                sensitivity = self._calibrate(errors, bar)
                 self.seconds_["calibrate"] = time.perf_counter() - tic
             self.models_["positions"] = self._position_model(coded, sensitivity["positions"])
         grid = np.arange(0, 52)
@@ -307,28 +302,68 @@ class RateController:
         self.overhead_ = overhead
         return self
 
-    def _prune_model(self, bar: Any = None) -> list[tuple[dict[str, float], float, float]]:
-        """Rate-point prune settings, share kept and rendered MSE for each opacity threshold that prunes
-        something (at most 80%) and each importance share."""
+    def _prune_candidates(self, renderer: Any = None) -> list[tuple[dict[str, float], np.ndarray]]:
+        """Rate-point prune settings and the Gaussians kept (a mask) for each opacity threshold that prunes
+        something (at most 80%) and each importance share (``renderer``: one of the cloud, for the
+        importance renders)."""
         opacity = self.cloud.activated_opacities()
         n = self.cloud.num_gaussians
-        out: list[tuple[dict[str, float], float, float]] = [(_prune(), 1.0, 0.0)]
+        out: list[tuple[dict[str, float], np.ndarray]] = []
         for threshold in PRUNE_THRESHOLDS[1:]:
-            keep = np.flatnonzero(opacity >= threshold)
-            if 0.2 <= keep.size / n < 1.0:
-                mse = self._rendered_mse(self.cloud.select(keep), keep)
-                out.append((_prune(min_opacity=threshold), keep.size / n, mse))
-            if bar is not None:
-                bar.update(1)
+            keep = opacity >= threshold
+            if 0.2 <= np.count_nonzero(keep) / n < 1.0:
+                out.append((_prune(min_opacity=threshold), keep))
         if self.importance_shares:
-            self.importance_ = gaussian_importance(self.cloud, self.importance_views)
+            self.importance_ = gaussian_importance(self.cloud, self.importance_views, renderer=renderer)
         for share in self.importance_shares:
-            keep = most_important(self.importance_, np.arange(n), keep_count(n, share))
-            if keep.size < n:
-                out.append((_prune(keep_share=share), keep.size / n, self._rendered_mse(self.cloud.select(keep), keep)))
-            if bar is not None:
-                bar.update(1)
+            rows = most_important(self.importance_, np.arange(n), keep_count(n, share))
+            if rows.size < n:
+                keep = np.zeros(n, dtype=np.bool_)
+                keep[rows] = True
+                out.append((_prune(keep_share=share), keep))
         return out
+
+    def _calibrate(self, errors: dict[str, np.ndarray], bar: Any = None) -> dict[str, float]:
+        """The render sensitivities (:meth:`_sensitivities`) and the pruning candidates' rendered MSE
+        (:attr:`prune_`), against renders of the uncompressed cloud (:attr:`_references`).
+
+        The variants that keep every Gaussian's geometry, the pruned subsets and the clouds with the
+        probe's DC or SH features as decoded, are rendered view by view from one prepared frame of
+        the cloud (:class:`~gscodec_shac.render.variants.FrameVariants`: only the per-pixel blend runs
+        again, the images are those of fresh renders); the others by renders of their own."""
+        from gscodec_shac.render import Renderer
+        from gscodec_shac.render.variants import FrameVariants
+
+        renderer = Renderer(self.cloud)
+        self._covariances = renderer.cov3
+        candidates = self._prune_candidates(renderer)
+        rows, decoded = self._probe_decoded
+        probe = self.cloud.select(rows)
+        recolours, variant = {}, None
+        for name in ("sh_dc", "sh"):
+            if name in errors:
+                variant = _with_decoded(probe, name, np.arange(rows.size), decoded)
+                recolours[name] = (variant.sh_dc, variant.sh_rest)
+        probe = variant = None
+        self._references = []
+        per_view: dict[Any, list] = {key: [] for key in [*recolours, *range(len(candidates))]}
+        for view in self.views:
+            frame = FrameVariants(renderer, view, self.background)
+            reference = frame.image()
+            self._references.append(reference)
+            for name, (sh_dc, sh_rest) in recolours.items():
+                per_view[name].append(np.mean((frame.recoloured(rows, sh_dc, sh_rest) - reference) ** 2))
+            for index, (_, keep) in enumerate(candidates):
+                per_view[index].append(np.mean((frame.subset(keep) - reference) ** 2))
+        renderer = frame = None
+        if bar is not None:
+            bar.update(1 + len(PRUNE_THRESHOLDS) - 1 + len(self.importance_shares))
+        n = self.cloud.num_gaussians
+        self.prune_ = [(_prune(), 1.0, 0.0)] + [
+            (settings, int(np.count_nonzero(keep)) / n, float(np.mean(per_view[i])))
+            for i, (settings, keep) in enumerate(candidates)]
+        self.rendered_mse_ = {name: float(np.mean(per_view[name])) for name in recolours}
+        return self._sensitivities(errors, self.rendered_mse_, bar)
 
     def _probe(self, rows: np.ndarray, bar: Any = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
         """Per attribute, bytes (scaled to the whole cloud) and attribute MSE at each probe QP of the
@@ -412,20 +447,24 @@ class RateController:
                 out[i] += float(np.interp(len(qps), [k for k, _ in state], [v for _, v in state]))
         return out
 
-    def _sensitivities(self, errors: dict[str, np.ndarray], bar: Any = None) -> dict[str, float]:
+    def _sensitivities(self, errors: dict[str, np.ndarray], rendered: dict[str, float],
+                       bar: Any = None) -> dict[str, float]:
         """Rendered MSE per unit attribute MSE: renders of the cloud with one attribute of the probe's
         Gaussians replaced by what the codec decoded at :data:`SENSITIVITY_QP` (its errors are
         correlated along the grid, as in a real encode, where independent noise of the same size
-        renders less error), divided by that error spread over the whole cloud (``bar``: a
-        progress bar advanced once per attribute)."""
+        renders less error), divided by that error spread over the whole cloud (``rendered``: the
+        rendered MSE of the attributes already rendered; ``bar``: a progress bar advanced once per
+        attribute)."""
         middle = PROBE_QPS.index(SENSITIVITY_QP)
         rows, decoded = self._probe_decoded
         share = rows.size / self.cloud.num_gaussians
         out = {}
         for name, mse in errors.items():
             error = max(float(mse[middle]), 1e-12) * share  # the probe's error spread over the whole cloud
-            same_shapes = None if name in ("rotation", "scale") else slice(None)  # the covariances stay
-            out[name] = self._rendered_mse(_with_decoded(self.cloud, name, rows, decoded), same_shapes) / error
+            if name not in rendered:
+                same_shapes = None if name in ("rotation", "scale") else slice(None)  # the covariances stay
+                rendered[name] = self._rendered_mse(_with_decoded(self.cloud, name, rows, decoded), same_shapes)
+            out[name] = rendered[name] / error
             if bar is not None:
                 bar.update(1)
         bits = 12

@@ -163,14 +163,16 @@ class Renderer:
         view_colors(self.means, self.cloud.sh_dc, self.cloud.sh_rest, _check_camera(camera).center, mask, out)
         return out
 
-    def prepare(self, camera: Camera) -> Frame:
-        """Project, shade and bin for ``camera`` (everything but the per-pixel blend)."""
+    def prepare(self, camera: Camera, *, shade: bool = True) -> Frame:
+        """Project, shade and bin for ``camera`` (everything but the per-pixel blend); without ``shade``
+        the colours are left unset (for the blend's weights, which do not depend on them)."""
         projection = self._project(camera)
         check_render_memory(camera.width, camera.height, f"camera {camera.name!r}")
         ws = self._workspace()
-        view_colors(
-            self.means, self.cloud.sh_dc, self.cloud.sh_rest, camera.center, projection.radii > 0, ws.pack_n, P_R
-        )
+        if shade:
+            view_colors(
+                self.means, self.cloud.sh_dc, self.cloud.sh_rest, camera.center, projection.radii > 0, ws.pack_n, P_R
+            )
         colors = ws.pack_n[:, P_R:P_R + 3]
         bins = bin_gaussians(ws.keys, ws.pack_n, ws.rects_n, camera.width, camera.height, ws.order, ws.pack, ws.rects)
         return Frame(camera, projection, colors, bins)
@@ -183,11 +185,7 @@ class Renderer:
         bg = parse_background(background)
         frame = self.prepare(camera)
         w, h = camera.width, camera.height
-        ws = self._workspace()
-        color, trans, depth_sum, last = rasterize(frame.bins, w, h, ws.pixels)
-        ws.pixels = {"color": color, "trans": trans, "depth": depth_sum, "last": last}
-        image = np.empty((h, w, 3), dtype=np.float32)
-        np.add(color, trans[:, None] * bg, out=image.reshape(-1, 3), casting="unsafe")
+        image, trans, depth_sum = self.blend(frame.bins, camera, bg)
         alpha = (1.0 - trans).reshape(h, w)
         depth_map = None
         if depth:
@@ -198,6 +196,18 @@ class Renderer:
             n_rendered=frame.bins.n_touching, n_visible=int(np.count_nonzero(frame.projection.radii)),
             n_pairs=frame.bins.n_pairs, radii=frame.projection.radii.copy(),
         )
+
+    def blend(self, bins: TileBins, camera: Camera,
+              background: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(image (H, W, 3) float32, transmittance (H*W,), weighted depth sum (H*W,))`` of tile lists ``bins``
+        (:meth:`prepare`'s, or lists derived from them) over ``background`` (a (3,) float64 array)."""
+        w, h = camera.width, camera.height
+        ws = self._workspace()
+        color, trans, depth_sum, last = rasterize(bins, w, h, ws.pixels)
+        ws.pixels = {"color": color, "trans": trans, "depth": depth_sum, "last": last}
+        image = np.empty((h, w, 3), dtype=np.float32)
+        np.add(color, trans[:, None] * background, out=image.reshape(-1, 3), casting="unsafe")
+        return image, trans, depth_sum
 
     def weights(self, camera: Camera) -> tuple[scipy.sparse.csr_matrix, np.ndarray]:
         """``(W, T)``: blending weights (H*W, N) and final transmittance (H*W,).
@@ -219,7 +229,7 @@ class Renderer:
 
         The column sums of :meth:`weights`' matrix, accumulated inside the blend (no matrix).
         """
-        frame = self.prepare(camera)
+        frame = self.prepare(camera, shade=False)
         return blend_totals(frame.bins, camera.width, camera.height, self.num_gaussians)
 
 

@@ -1,0 +1,78 @@
+"""Renders of a cloud's variants from one camera that reuse the cloud's own prepared frame.
+
+Two kinds of variant leave every remaining Gaussian's projection, depth and tile rectangle as
+they were, so the per-Gaussian work of a render (projection, shading, depth sort, binning,
+:meth:`Renderer.prepare`) is the cloud's and only the per-pixel blend runs again:
+
+* a **subset** (``cloud.select(keep)`` with ``keep`` ascending, e.g. a pruning): its tile lists
+  are the cloud's without the dropped Gaussians' entries (lists run by depth, then by row, and
+  dropping rows keeps the order of the others);
+* a **recoloured** cloud (some rows' SH coefficients replaced, their means, shapes and
+  opacities not): the cloud's lists, with those rows' view colours in the depth-sorted rows.
+
+Each image equals a fresh :class:`Renderer`'s of the variant bit for bit (the per-Gaussian
+kernels work row by row): tests/test_render.py.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import numpy as np
+
+from gscodec_shac.camera import Camera
+from gscodec_shac.render.projection import P_R
+from gscodec_shac.render.renderer import Frame, Renderer, parse_background
+from gscodec_shac.render.shading import view_colors
+
+
+class FrameVariants:
+    """The cloud of ``renderer`` prepared once for ``camera``; images of it and of its variants.
+
+    Holds the renderer's workspace: render nothing else with ``renderer`` while this is in use.
+    """
+
+    def __init__(self, renderer: Renderer, camera: Camera, background: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
+        self.renderer = renderer
+        self.camera = camera
+        self.background = parse_background(background)
+        self.frame: Frame = renderer.prepare(camera)
+        self._pair_rows: np.ndarray | None = None  # the cloud's row of each tile-list entry
+
+    def image(self) -> np.ndarray:
+        """(H, W, 3) float32: the cloud's own image (as :meth:`Renderer.render`)."""
+        return self.renderer.blend(self.frame.bins, self.camera, self.background)[0]
+
+    def subset(self, keep: np.ndarray) -> np.ndarray:
+        """The image of ``cloud.select(keep)`` (``keep``: ascending rows, or a boolean mask over the rows)."""
+        bins = self.frame.bins
+        mask = np.asarray(keep)
+        if mask.dtype != np.bool_:
+            mask = np.zeros(self.renderer.num_gaussians, dtype=np.bool_)
+            mask[keep] = True
+        if self._pair_rows is None:
+            self._pair_rows = bins.order[bins.ids]
+        listed = mask[self._pair_rows]
+        kept_before = np.concatenate([[0], np.cumsum(listed, dtype=np.int64)])
+        lists = dataclasses.replace(bins, tile_start=kept_before[bins.tile_start], ids=bins.ids[listed])
+        return self.renderer.blend(lists, self.camera, self.background)[0]
+
+    def recoloured(self, rows: np.ndarray, sh_dc: np.ndarray, sh_rest: np.ndarray) -> np.ndarray:
+        """The image of the cloud with the SH coefficients of ``rows`` replaced by ``sh_dc`` (len(rows), 3)
+        and ``sh_rest`` (len(rows), K, 3), in the order of ``rows``."""
+        bins = self.frame.bins
+        entry = np.full(self.renderer.num_gaussians, -1, dtype=np.int64)
+        entry[bins.order] = np.arange(bins.order.size)
+        entries = entry[np.asarray(rows)]
+        listed = entries >= 0  # culled rows are in no list
+        entries = entries[listed]
+        colours = view_colors(np.ascontiguousarray(self.renderer.means[np.asarray(rows)[listed]]),
+                              np.ascontiguousarray(sh_dc[listed]), np.ascontiguousarray(sh_rest[listed]),
+                              self.camera.center)
+        saved = bins.pack[entries, P_R:P_R + 3].copy()
+        bins.pack[entries, P_R:P_R + 3] = colours
+        try:
+            return self.renderer.blend(bins, self.camera, self.background)[0]
+        finally:
+            bins.pack[entries, P_R:P_R + 3] = saved
