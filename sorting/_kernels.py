@@ -38,13 +38,15 @@ def _scratch(k):
 
 
 @njit(cache=True, fastmath=True)
-def _improve_groups(feat, idx, target, pos_y, pos_x, row, geom, g_start, g_end, tmp, cs, ids):
+def _improve_groups(feat, idx, target, pos_y, pos_x, row, geom, g_start, g_end, tmp, cs, ids, warm):
     """Groups ``[g_start, g_end)``: apply each group's best assignment; return (before, after).
 
     Group ``q`` of a block takes positions ``4q .. 4q+3`` of row ``row`` of the
     position tables ``pos_y``/``pos_x`` (tables, rows, block cells). ``tmp``, ``cs`` and ``ids``
     are scratch (:func:`_scratch`), allocated once by the caller, not per call: a small block
-    is a call per pass, and the three allocations were ~5% of a 1M-cell sort.
+    is a call per pass, and the three allocations were ~5% of a 1M-cell sort. ``warm``: read each
+    block row by row before its random groups (the caller passes ``geom[9] != 0``, or False for a
+    block still in the cache from its previous pass).
     """
     height, width, bh, bw, sy, sx, nbx = geom[0], geom[1], geom[2], geom[3], geom[4], geom[5], geom[6]
     gpb = (bh * bw) // 4
@@ -58,7 +60,6 @@ def _improve_groups(feat, idx, target, pos_y, pos_x, row, geom, g_start, g_end, 
     bx = b - by * nbx
     y0 = by * bh + sy
     x0 = bx * bw + sx
-    warm = geom[9] != 0
     touched = np.float32(0.0)
     for g in range(g_start, g_end):
         if warm and (q == 0 or g == g_start):
@@ -274,7 +275,8 @@ def improve_pass_parallel(feat, idx, target, pos_y, pos_x, geom, before, after):
     for chunk in prange(before.shape[0]):
         g0 = chunk * CHUNK
         tmp, cs, ids = _scratch(feat.shape[1])
-        b, a = _improve_groups(feat, idx, target, pos_y, pos_x, 0, geom, g0, min(g0 + CHUNK, n_groups), tmp, cs, ids)
+        b, a = _improve_groups(feat, idx, target, pos_y, pos_x, 0, geom, g0, min(g0 + CHUNK, n_groups), tmp, cs, ids,
+                               geom[9] != 0)
         before[chunk] = b
         after[chunk] = a
 
@@ -286,7 +288,8 @@ def improve_pass_serial(feat, idx, target, pos_y, pos_x, geom, before, after):
     tmp, cs, ids = _scratch(feat.shape[1])
     for chunk in range(before.shape[0]):
         g0 = chunk * CHUNK
-        b, a = _improve_groups(feat, idx, target, pos_y, pos_x, 0, geom, g0, min(g0 + CHUNK, n_groups), tmp, cs, ids)
+        b, a = _improve_groups(feat, idx, target, pos_y, pos_x, 0, geom, g0, min(g0 + CHUNK, n_groups), tmp, cs, ids,
+                               geom[9] != 0)
         before[chunk] = b
         after[chunk] = a
 
@@ -335,15 +338,18 @@ def sort_one_radius(feat, idx, target, pos_y, pos_x, geom, before, after, keys, 
 
 
 @njit(cache=True)
-def _block_until_converged(feat, idx, target, pos_y, pos_x, geom, block, improvement_break, stats):
-    """Passes over one block until one gains < ``improvement_break``; pass ``p`` uses table row ``p % rows``."""
+def _block_until_converged(feat, idx, target, pos_y, pos_x, geom, block, improvement_break, stats, tmp, cs, ids):
+    """Passes over one block until one gains < ``improvement_break``; pass ``p`` uses table row ``p % rows``.
+
+    Only the first pass warms the cache (geom[9]): the later ones find the block where it left it.
+    ``tmp``, ``cs``, ``ids``: the caller's :func:`_scratch`.
+    """
     gpb = (geom[2] * geom[3]) // 4
     rows = pos_y.shape[0]
     max_passes = geom[8]
-    tmp, cs, ids = _scratch(feat.shape[1])
     for p in range(max_passes):
         b, a = _improve_groups(feat, idx, target, pos_y, pos_x, p % rows, geom, block * gpb, (block + 1) * gpb,
-                               tmp, cs, ids)
+                               tmp, cs, ids, p == 0 and geom[9] != 0)
         if p == 0:
             stats[block, 0] = b
             stats[block, 1] = a
@@ -352,20 +358,28 @@ def _block_until_converged(feat, idx, target, pos_y, pos_x, geom, block, improve
             break
 
 
+@njit(cache=True)
+def _block_run(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats, run, per_run):
+    """Blocks ``run * per_run ..`` (at most ``per_run``) one after the other, with one scratch."""
+    tmp, cs, ids = _scratch(feat.shape[1])
+    for block in range(run * per_run, min((run + 1) * per_run, stats.shape[0])):
+        _block_until_converged(feat, idx, target, pos_y, pos_x, geom, block, improvement_break, stats, tmp, cs, ids)
+
+
 @njit(parallel=True, cache=True)
-def _offset_blocks_parallel(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats):
-    for block in prange(stats.shape[0]):
-        _block_until_converged(feat, idx, target, pos_y, pos_x, geom, block, improvement_break, stats)
+def _offset_blocks_parallel(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats, per_run):
+    for run in prange((stats.shape[0] + per_run - 1) // per_run):
+        _block_run(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats, run, per_run)
 
 
 @njit(cache=True)
-def _offset_blocks_serial(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats):
-    for block in range(stats.shape[0]):
-        _block_until_converged(feat, idx, target, pos_y, pos_x, geom, block, improvement_break, stats)
+def _offset_blocks_serial(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats, per_run):
+    _block_run(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats, 0, stats.shape[0])
 
 
 @njit(cache=True)
-def sort_one_radius_blockwise(feat, idx, target, pos_y, pos_x, geom, stats, shifts, improvement_break, min_offsets, parallel):
+def sort_one_radius_blockwise(feat, idx, target, pos_y, pos_x, geom, stats, shifts, improvement_break, min_offsets, parallel,
+                              per_run):
     """PLAS's loop for one target, for many small blocks: each block runs its own passes.
 
     Blocks are independent while the offset stays, so every block is improved
@@ -373,7 +387,8 @@ def sort_one_radius_blockwise(feat, idx, target, pos_y, pos_x, geom, stats, shif
     offset, and a block stays in the cache for all its passes). An offset
     counts as improving when its first passes together gained at least
     ``improvement_break``; the loop over offsets ends as in :func:`sort_one_radius`.
-    ``stats`` is (blocks, 3) scratch. Returns the block passes run, averaged over blocks.
+    ``stats`` is (blocks, 3) scratch; blocks are handed out in runs of ``per_run`` (one scratch
+    per run). Returns the block passes run, averaged over blocks.
     """
     n_blocks = stats.shape[0]
     total = 0.0
@@ -382,9 +397,9 @@ def sort_one_radius_blockwise(feat, idx, target, pos_y, pos_x, geom, stats, shif
         geom[4] = shifts[offset, 0]
         geom[5] = shifts[offset, 1]
         if parallel:
-            _offset_blocks_parallel(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats)
+            _offset_blocks_parallel(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats, per_run)
         else:
-            _offset_blocks_serial(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats)
+            _offset_blocks_serial(feat, idx, target, pos_y, pos_x, geom, improvement_break, stats, per_run)
         before = 0.0
         after = 0.0
         for block in range(n_blocks):  # fixed order: the same sums on any number of threads

@@ -13,6 +13,9 @@ import numpy as np
 
 from sorting.errors import SortingError
 
+#: Inputs with at least this many rows are prepared for sorting by the numba kernels of
+#: ``sorting/_prep.py`` (on all threads); smaller ones in numpy (the same values).
+PARALLEL_ROWS = 65536
 #: Widest allowed ratio of the long to the short grid side in :func:`grid_shape`.
 MAX_ASPECT = 1.5
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from sorting.errors import SortingError
-from sorting.grid import check_shape
+from sorting.grid import PARALLEL_ROWS, check_shape
 
 _CODE_BITS = 63
 
@@ -22,7 +22,7 @@ def morton_codes(points: np.ndarray) -> np.ndarray:
     first 63 columns count. The first column takes the lowest bit of each
     interleaved group.
     """
-    pts = np.asarray(points, dtype=np.float64)
+    pts = np.asarray(points)
     if pts.ndim == 1:
         pts = pts[:, None]
     n, d = pts.shape
@@ -30,6 +30,9 @@ def morton_codes(points: np.ndarray) -> np.ndarray:
     if d > _CODE_BITS:
         pts = pts[:, :_CODE_BITS]
         d = _CODE_BITS
+    if n >= PARALLEL_ROWS and pts.dtype in (np.float32, np.float64):
+        return _codes_parallel(pts, bits)
+    pts = pts.astype(np.float64)
     lo = pts.min(axis=0)
     span = pts.max(axis=0) - lo
     span[span <= 0] = 1.0
@@ -44,6 +47,16 @@ def morton_codes(points: np.ndarray) -> np.ndarray:
             part = q[:, dim] if width == bits else (q[:, dim] >> np.uint64(start)) & np.uint64((1 << width) - 1)
             codes |= _spread_table(width, start, d, dim)[part.astype(np.intp)]
     return codes
+
+
+def _codes_parallel(pts: np.ndarray, bits: int) -> np.ndarray:
+    """:func:`morton_codes` of many float rows on all threads (the same codes, no float64 copy)."""
+    from sorting._prep import column_ranges, zorder_codes
+
+    lo, hi, _ = column_ranges(pts)
+    span = hi - lo
+    span[span <= 0] = 1.0
+    return zorder_codes(pts, lo, span, bits)
 
 
 def _spread_table(width: int, start: int, d: int, dim: int) -> np.ndarray:

@@ -20,9 +20,11 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from sorting import _groups, _kernels
+from sorting._prep import finish_target as parallel_finish
+from sorting._prep import scatter_centred
 from sorting.blur import BORDERS, blur_grid
 from sorting.errors import SortingError
-from sorting.grid import invert_order
+from sorting.grid import PARALLEL_ROWS, invert_order
 from sorting.morton import morton_order
 
 
@@ -143,9 +145,13 @@ def make_state(features: np.ndarray, shape: tuple[int, int], cells: np.ndarray) 
     n, c = features.shape
     k = -(-(c + 2) // 8) * 8
     feat = np.zeros((h * w, k), dtype=np.float32)
-    centred = features.astype(np.float64) - features.astype(np.float64).mean(axis=0)
-    feat[cells, :c] = centred.astype(np.float32)
-    feat[cells, k - 2] = 1.0
+    if n >= PARALLEL_ROWS:  # the same values without float64 copies, on all threads
+        scatter_centred(feat, np.ascontiguousarray(cells, dtype=np.int64), features,
+                        features.astype(np.float64).mean(axis=0))
+    else:
+        centred = features.astype(np.float64) - features.astype(np.float64).mean(axis=0)
+        feat[cells, :c] = centred.astype(np.float32)
+        feat[cells, k - 2] = 1.0
     idx = np.full(h * w, -1, dtype=np.int64)
     idx[cells] = np.arange(n, dtype=np.int64)
     return PlasState(feat, idx, (h, w))
@@ -168,6 +174,9 @@ def finish_target(blurred: np.ndarray, state: PlasState) -> np.ndarray:
     """The blurred cells (H*W, K) made the target, in place: divided by the blurred item flag when
     cells are empty, channel ``K-2`` zeroed, channel ``K-1`` set to the squared norm."""
     k = blurred.shape[1]
+    if blurred.shape[0] >= PARALLEL_ROWS:  # the same values on all threads, without temporaries
+        parallel_finish(blurred, not state.valid.all())
+        return blurred
     if not state.valid.all():
         weight = blurred[:, k - 2 : k - 1].copy()
         np.divide(blurred, weight, out=blurred, where=weight > 1e-6)
@@ -188,9 +197,11 @@ def _tiled(bh: int, bw: int, above: int) -> bool:
     return 0 < above < bh * bw and bh % t == 0 and bw % t == 0 and (bh // t) * (bw // t) % 2 == 0
 
 
-#: Blocks of at most this many cells are read row by row before their random groups
-#: (the groups then hit the cache) ...
+#: Blocks of at most WARM_CELLS and at least WARM_MIN_CELLS cells are read row by row before their
+#: random groups (the groups then hit the cache; 4x4 blocks were faster without: 1M cells,
+#: radii 1-4 of paper_table3, 0.82-0.90 s against 1.02-1.15 s, one thread) ...
 WARM_CELLS = 32768
+WARM_MIN_CELLS = 64
 #: ... in grids of at least this many cells (smaller grids stay in the cache anyway).
 WARM_GRID = 131072
 #: In grids of at least BLOCKWISE_GRID cells, layouts with at least BLOCKWISE_BLOCKS blocks
@@ -200,6 +211,9 @@ WARM_GRID = 131072
 BLOCKWISE_GRID = 262144
 BLOCKWISE_BLOCKS = 4
 BLOCKWISE_CELLS = 65536
+#: ... handed out to the threads in runs of about this many cells (one scratch per run: at 1M
+#: cells, radii 1-4 have 62,500 blocks of 16 cells each).
+RUN_CELLS = 4096
 #: Distinct random groupings per radius in block-by-block mode (pass p uses grouping p % TABLES).
 TABLES = 16
 
@@ -217,7 +231,7 @@ def sort_radius(state: PlasState, radius: int, sched: PlasSchedule, rng: np.rand
     nby, nbx = h // bh, w // bw
     n_blocks = nby * nbx
     n_groups = n_blocks * (bh * bw // 4)
-    warm = bh * bw <= WARM_CELLS and h * w >= WARM_GRID
+    warm = WARM_MIN_CELLS <= bh * bw <= WARM_CELLS and h * w >= WARM_GRID
     geom = np.array([h, w, bh, bw, 0, 0, nbx, n_groups, sched.max_passes, warm], dtype=np.int64)
     keys = rng.integers(0, 1 << 31, size=(sched.max_passes, 4), dtype=np.int64)
     shifts = np.stack(
@@ -234,7 +248,7 @@ def sort_radius(state: PlasState, radius: int, sched: PlasSchedule, rng: np.rand
         return float(
             _kernels.sort_one_radius_blockwise(
                 state.feat, state.idx, target, pos_y, pos_x, geom, stats, shifts,
-                float(sched.improvement_break), int(sched.min_offsets), parallel,
+                float(sched.improvement_break), int(sched.min_offsets), parallel, max(1, RUN_CELLS // (bh * bw)),
             )
         )
     n_chunks = -(-n_groups // _kernels.CHUNK)

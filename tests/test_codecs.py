@@ -358,6 +358,7 @@ def test_a_dead_x265_worker_is_replaced_and_the_piece_coded_again(monkeypatch):
     frames = list(_x265_planes()[:1])
     options = {"preset": "fast", "x265-params": "qp=30:info=0:log-level=error:frame-threads=1"}
     expected = encode_frames(frames, "gray10le", options)
+    x265_processes.shutdown()  # earlier tests' idle workers (parallel encodes leave several) would die too
     assert x265_processes.encode(frames, "gray10le", options) == expected
     with x265_processes._lock:  # the worker waiting for the next piece dies (as when x265 crashes)
         idle = list(x265_processes._idle)
@@ -367,6 +368,27 @@ def test_a_dead_x265_worker_is_replaced_and_the_piece_coded_again(monkeypatch):
         worker.process.wait()
     with pytest.warns(RuntimeWarning, match="x265 worker process failed .*coding the stream again"):
         assert x265_processes.encode(frames, "gray10le", options) == expected
+
+
+def test_prestarted_x265_workers_code_the_next_pieces(monkeypatch):
+    from gscodec_shac.codec.grid import x265_processes
+    from gscodec_shac.codec.grid.hevc import encode_frames
+
+    x265_processes.shutdown()
+    monkeypatch.setenv(x265_processes.ENV, "0")
+    x265_processes.prestart(2)  # x265 in-process: nothing to start
+    assert not x265_processes._idle
+    monkeypatch.setenv(x265_processes.ENV, "1")
+    x265_processes.prestart(2)
+    x265_processes.prestart(2)  # already idle: none more
+    with x265_processes._lock:
+        started = list(x265_processes._idle)
+    assert len(started) == 2 and all(worker.process.poll() is None for worker in started)
+    frames = list(_x265_planes()[:1])
+    options = {"preset": "fast", "x265-params": "qp=30:info=0:log-level=error:frame-threads=1"}
+    assert x265_processes.encode(frames, "gray10le", options) == encode_frames(frames, "gray10le", options)
+    with x265_processes._lock:
+        assert {id(worker) for worker in x265_processes._idle} == {id(worker) for worker in started}
 
 
 def test_a_hung_x265_worker_is_killed_and_reported_after_the_last_attempt():

@@ -208,11 +208,14 @@ def test_threads_and_cache_warming_do_not_change_the_order(monkeypatch, tile_gro
     monkeypatch.setattr(plas_module, "PARALLEL_GROUPS", 1)
     monkeypatch.setattr(sorting.blur, "PARALLEL_CELLS", 1)
     parallel = sorting.sort_to_grid(feats, (32, 32), **kwargs)
+    monkeypatch.setattr(plas_module, "RUN_CELLS", 1)  # every block its own run of the parallel loop
+    one_block_runs = sorting.sort_to_grid(feats, (32, 32), **kwargs)
     monkeypatch.setattr(plas_module, "WARM_GRID", 0)
     warmed = sorting.sort_to_grid(feats, (32, 32), **kwargs)
     monkeypatch.setattr(plas_module, "BLOCKWISE_BLOCKS", 1 << 40)
     whole_layout = sorting.sort_to_grid(feats, (32, 32), **kwargs)
     assert np.array_equal(serial, parallel)
+    assert np.array_equal(serial, one_block_runs)
     assert np.array_equal(serial, warmed)
     assert np.array_equal(np.sort(whole_layout), np.arange(32 * 32))
     assert quality(feats, whole_layout, (32, 32)) < 1.2 * quality(feats, serial, (32, 32))
@@ -280,6 +283,21 @@ def test_plas_target_in_reused_buffers_is_the_target_in_fresh_arrays(n):
         assert got.tobytes() == _target_in_fresh_arrays(state, size, sched).tobytes()
 
 
+@pytest.mark.parametrize("channels, n", [(6, 30 * 32), (6, 30 * 32 - 37), (14, 30 * 32 - 5), (20, 30 * 32)])
+def test_parallel_target_is_the_numpy_target(monkeypatch, channels, n):
+    from sorting.blur import blur_grid
+
+    """sorting/_prep.py's finish (K = 8, 16, 24; full and padded grids) equals numpy's, bit for bit."""
+    rng = np.random.default_rng(channels)
+    feats = (rng.normal(size=(n, channels)) * 3).astype(np.float32)
+    state = plas_module.make_state(feats, (30, 32), rng.permutation(30 * 32)[:n])
+    blurred = blur_grid(state.feat, state.shape, 5, 7)
+    monkeypatch.setattr(plas_module, "PARALLEL_ROWS", 1)
+    got = plas_module.finish_target(blurred.copy(), state)
+    monkeypatch.setattr(plas_module, "PARALLEL_ROWS", 1 << 40)
+    assert got.tobytes() == plas_module.finish_target(blurred.copy(), state).tobytes()
+
+
 def test_plas_orders_are_those_of_the_sort_before_the_buffer_reuse(monkeypatch):
     """Pins the exact orders (sha256 prefixes) of a padded and a full grid, whole-layout and
     block-by-block, serial and parallel, as sorted at commit 482e7c8, before the blur reused its
@@ -321,6 +339,46 @@ def test_prepare_features_normalises_and_weights_each_attribute():
     std = sorting.prepare_features({"xyz": xyz}, normalize="std")
     assert np.sqrt((std.astype(np.float64) ** 2).mean()) == pytest.approx(1.0, rel=1e-5)
     assert sorting.prepare_features({"xyz": xyz, "opacity": opacity}, {"opacity": 0}).shape == (100, 3)
+
+
+def _numpy_preparation(monkeypatch) -> None:
+    for module in (sorting.features, sorting.morton, plas_module):
+        monkeypatch.setattr(module, "PARALLEL_ROWS", 1 << 40)
+
+
+def test_parallel_preparation_gives_the_numpy_values(monkeypatch):
+    """Features, Morton codes and cell vectors of sorting/_prep.py equal the numpy ones bit for bit."""
+    rng = np.random.default_rng(3)
+    n = 5000
+    attributes = {"xyz": (rng.normal(size=(n, 3)) * [30.0, 1.0, 0.1] + 7.0).astype(np.float32),
+                  "opacity": rng.normal(size=n).astype(np.float32),
+                  "dc": rng.random((n, 3)), "flat": np.full((n, 2), 3.0, np.float32)}
+    weights = {"opacity": 2.5, "flat": 0.7, "dc": 0.0}
+    shape = (72, 72)
+    cells = rng.permutation(shape[0] * shape[1])[:n]
+    for module in (sorting.features, sorting.morton, plas_module):
+        monkeypatch.setattr(module, "PARALLEL_ROWS", 1)
+    feats = sorting.prepare_features(attributes, weights)
+    codes = [sorting.morton.morton_codes(x) for x in (feats, attributes["xyz"], attributes["dc"])]
+    state = plas_module.make_state(feats, shape, cells)
+    _numpy_preparation(monkeypatch)
+    want = sorting.prepare_features(attributes, weights)
+    assert feats.dtype == want.dtype and feats.tobytes() == want.tobytes()
+    for got, x in zip(codes, (feats, attributes["xyz"], attributes["dc"])):
+        assert np.array_equal(got, sorting.morton.morton_codes(x))
+    want_state = plas_module.make_state(feats, shape, cells)
+    assert state.feat.tobytes() == want_state.feat.tobytes() and np.array_equal(state.idx, want_state.idx)
+
+
+def test_parallel_preparation_errors(monkeypatch):
+    monkeypatch.setattr(sorting.features, "PARALLEL_ROWS", 1)
+    xyz = np.zeros((10, 3), np.float32)
+    with pytest.raises(SortingError, match="'xyz' contains NaN"):
+        sorting.prepare_features({"xyz": np.full((10, 3), np.inf, np.float32)})
+    with pytest.raises(SortingError, match="weight of 'xyz'"):
+        sorting.prepare_features({"xyz": xyz}, {"xyz": -1.0})
+    with pytest.raises(SortingError, match="every attribute has weight 0"):
+        sorting.prepare_features({"xyz": xyz}, {"xyz": 0.0})
 
 
 def test_prepare_features_errors():

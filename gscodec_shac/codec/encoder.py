@@ -31,6 +31,7 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 import numpy as np
 
 import gscodec_shac
+import gscodec_shac.openmp  # noqa: F401  (numba's OpenMP threads sleep between the sort's parallel regions)
 from gscodec_shac.camera import Camera
 from gscodec_shac.codec import quantize as qz
 from gscodec_shac.codec import sh_degree as degrees
@@ -272,7 +273,11 @@ class Encoder:
                     attributes[name] = self._code_values(name, attr.transform, values, rp.attributes[name],
                                                          cell_rows, grid.shape, attr.groups, rows=rows)
                 values = None
-            with self._timed("sh_stage"):
+            # one BLAS thread: the scheduler is coding the other attributes meanwhile (a second BLAS
+            # thread only competed with x265 and spun: 0.6 s of CPU at 1M Gaussians, the same bytes)
+            from threadpoolctl import threadpool_limits  # only an encode needs it
+
+            with self._timed("sh_stage"), threadpool_limits(1, user_api="blas"):
                 features = self._sh_features(stage, grid_cloud, ac, dc_only_weight)
             ac = None
             if features is not None and features.shape[1]:

@@ -14,11 +14,24 @@ from gscodec_shac.atomic import inputs_protected
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.decoder import Decoder
 from gscodec_shac.codec.encoder import Encoder
+from gscodec_shac.codec.grid import x265_processes
 from gscodec_shac.codec.rate_control import TEMPLATE, RateController, Target, make_target
 from gscodec_shac.codec.importance import importance_views
 from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
 from gscodec_shac.io.cameras import load_cameras
 from gscodec_shac.errors import GscodecError, OutputError
+from gscodec_shac.limits import default_workers
+
+
+def _prestart_x265(rate_point: str | Path | RatePoint) -> None:
+    """Start the x265 worker processes while the model is read, when the rate point codes with x265
+    (a rate point that does not load is reported where it is used)."""
+    try:
+        point = load_rate_point(rate_point)
+    except GscodecError:
+        return
+    if any(spec.codec == "hevc" for spec in point.attributes.values()):
+        x265_processes.prestart(default_workers())
 
 
 def encode_file(
@@ -60,6 +73,7 @@ def encode_file(
 
     tic = time.perf_counter()
     _check_output_dir(out_gsc, in_ply)
+    _prestart_x265(rate_point)
     dynamic = None
     if is_dynamic_model(in_ply):  # canonical Gaussians as any model + the network chunk
         from gscodec_shac.codec.deformation import add_deformation
