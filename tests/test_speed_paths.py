@@ -36,6 +36,13 @@ NOT_FOR_DECODE = ("numba", "sorting.plas", "sorting._kernels", "sorting.api",
                   "gscodec_shac.render.raster", "gscodec_shac.train.model")
 
 
+def last_line_printed(script: str) -> str:
+    """The last line ``script`` prints, run in a fresh interpreter with this checkout first on the path."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True)
+    return done.stdout.strip().splitlines()[-1]
+
+
 def test_decoding_imports_no_compiled_kernels(tmp_path):
     script = (
         "import json, sys\n"
@@ -45,9 +52,7 @@ def test_decoding_imports_no_compiled_kernels(tmp_path):
         f"    decode_file(path, {str(tmp_path)!r} + (f'/dir{{i}}/' if is_dynamic_stream(path) else f'/out{{i}}.ply'))\n"
         f"print(json.dumps([m for m in {NOT_FOR_DECODE!r} if m in sys.modules]))\n"
     )
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True)
-    assert STREAMS and json.loads(done.stdout.strip().splitlines()[-1]) == []
+    assert STREAMS and json.loads(last_line_printed(script)) == []
     dynamic = [p for p in STREAMS if "deformation" in Bitstream.read(p).features]
     assert len(list(tmp_path.glob("out*.ply"))) == len(STREAMS) - len(dynamic)
     assert len(list(tmp_path.glob("dir*/point_cloud.ply"))) == len(dynamic)
@@ -60,9 +65,7 @@ def test_the_decode_command_imports_no_numba(tmp_path):
         f"assert main(['decode', {str(STREAMS[-1])!r}, {str(tmp_path / 'out.ply')!r}]) == 0\n"
         "print('numba' in sys.modules)\n"
     )
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True)
-    assert done.stdout.strip().splitlines()[-1] == "False"
+    assert last_line_printed(script) == "False"
 
 
 @pytest.mark.parametrize("name", ["v2.0/ladder_rp6_pca.gsc", "v1.0/recommended_rp3_lst.gsc", "v1.0/gsplat_png_vq.gsc"])
@@ -75,9 +78,7 @@ def test_decoding_imports_only_the_codecs_and_stage_the_stream_names(tmp_path, n
         f"decode_file({str(path)!r}, {str(tmp_path / 'out.ply')!r})\n"
         "print(json.dumps(sorted(sys.modules)))\n"
     )
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True)
-    imported = set(json.loads(done.stdout.strip().splitlines()[-1]))
+    imported = set(json.loads(last_line_printed(script)))
     codecs = {m for m in CODECS.modules.values() if f"gscodec_shac.codec.grid.{m}" in imported}
     stages = {m for m in STAGES.modules.values() if f"gscodec_shac.shac.{m}" in imported}
     assert codecs == {CODECS.modules[c.name] for c in header.codecs}
