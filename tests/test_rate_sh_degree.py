@@ -10,7 +10,7 @@ import pytest
 
 from gscodec_shac.codec import Decoder, load_rate_point
 from gscodec_shac.codec.rate_control import TEMPLATE, RateController, Target
-from gscodec_shac.codec.rate_sh_degree import DC_ONLY_BARS, RATIO_QPS, whole_cloud_flags
+from gscodec_shac.codec.rate_sh_degree import DC_ONLY_BARS, RATIO_QPS, whole_cloud_flags, zeroed
 
 
 @pytest.fixture(scope="module")
@@ -25,6 +25,19 @@ def half_flat(small_scene):
 @pytest.fixture(scope="module")
 def controller(half_flat, small_scene):
     return RateController(half_flat, views=small_scene.cameras, workers=2).fit()
+
+
+def test_zeroing_errors_rendered_from_one_frame_are_those_of_fresh_renders(controller, half_flat):
+    """Each bar's zeroing error under each pruning choice, rendered from the cloud's prepared frames,
+    is that of a fresh render of the pruned cloud with the bar's AC zeroed."""
+    kept = [np.arange(half_flat.num_gaussians)] + [np.flatnonzero(keep) for _, keep in controller._prune_candidates()]
+    assert len(kept) == len(controller.prune_) > 1
+    for choice in controller.dc_only_[1:]:
+        for j, (rows, (_, _, prune_mse)) in enumerate(zip(kept, controller.prune_)):
+            fresh = controller._rendered_mse(zeroed(half_flat.select(rows), choice.bar), rows)
+            assert controller._zeroed_mse[(choice.bar, j)] == fresh
+            assert choice.zeroing(j) == max(fresh - prune_mse, 0.0)
+        assert choice.zeroing(0) > 0
 
 
 def test_every_bar_is_measured(controller, half_flat):

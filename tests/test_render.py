@@ -285,8 +285,8 @@ def test_a_renderer_given_the_covariances_renders_the_same_images():
 
 
 def test_variants_from_one_prepared_frame_render_as_a_fresh_renderer():
-    """The rate controller renders subsets (pruning) and recoloured clouds (SH of some rows as decoded)
-    from the whole cloud's prepared frame (gscodec_shac/render/variants.py): only the blend runs
+    """The rate controller renders subsets (pruning), recoloured clouds (SH of some rows as decoded)
+    and recoloured subsets (pruning with the DC-only bar's AC zeroed) from the whole cloud's prepared frame (gscodec_shac/render/variants.py): only the blend runs
     again, and the images equal a fresh renderer's of the variant bit for bit, for every kind of
     camera, over a non-black background, also after other variants were rendered from the frame."""
     from gscodec_shac.render.variants import FrameVariants
@@ -315,3 +315,6 @@ def test_variants_from_one_prepared_frame_render_as_a_fresh_renderer():
             image = frame.recoloured(rows, sh_dc, sh_rest)
             assert np.array_equal(image, render(recoloured, camera, background=background).image)
             assert not np.array_equal(image, frame.image())
+            both = frame.variant(keep=mask, rows=rows, sh_dc=sh_dc, sh_rest=sh_rest)  # recoloured, then pruned
+            assert np.array_equal(both, render(recoloured.select(keep), camera, background=background).image)
+            assert not np.array_equal(both, pruned)

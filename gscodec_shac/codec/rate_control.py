@@ -65,7 +65,7 @@ from gscodec_shac.codec.encoder import Encoder, position_set_cache_key
 from gscodec_shac.codec.importance import gaussian_importance, importance_views, keep_count, most_important
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode, set_order
 from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
-from gscodec_shac.codec.rate_sh_degree import DC_ONLY_BARS, DcOnlyChoice, fit_choices, zeroed
+from gscodec_shac.codec.rate_sh_degree import DC_ONLY_BARS, DcOnlyChoice, cloud_energy, fit_choices, kept_flags
 from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac import limits
 from gscodec_shac.limits import default_workers
@@ -333,8 +333,9 @@ class RateController:
         """The render sensitivities (:meth:`_sensitivities`) and the pruning candidates' rendered MSE
         (:attr:`prune_`), against renders of the uncompressed cloud (:attr:`_references`).
 
-        The variants that keep every Gaussian's geometry, the pruned subsets and the clouds with the
-        probe's DC or SH features as decoded, are rendered view by view from one prepared frame of
+        The variants that keep every Gaussian's geometry, the pruned subsets, the clouds with the
+        probe's DC or SH features as decoded and the pruned subsets with the DC-only bars' AC
+        zeroed (:meth:`_zeroings`), are rendered view by view from one prepared frame of
         the cloud (:class:`~gscodec_shac.render.variants.FrameVariants`: only the per-pixel blend runs
         again, the images are those of fresh renders); the others by renders of their own."""
         from gscodec_shac.render import Renderer
@@ -351,8 +352,11 @@ class RateController:
                 variant = _with_decoded(probe, name, np.arange(rows.size), decoded)
                 recolours[name] = (variant.sh_dc, variant.sh_rest)
         probe = variant = None
+        zeroings = self._zeroings(candidates, errors)
+        no_ac = np.zeros((max((z.size for _, z in zeroings.values()), default=0), *self.cloud.sh_rest.shape[1:]),
+                         dtype=self.cloud.sh_rest.dtype)
         self._references = []
-        per_view: dict[Any, list] = {key: [] for key in [*recolours, *range(len(candidates))]}
+        per_view: dict[Any, list] = {key: [] for key in [*recolours, *range(len(candidates)), *zeroings]}
         for view in self.views:
             frame = FrameVariants(renderer, view, self.background)
             reference = frame.image()
@@ -361,7 +365,11 @@ class RateController:
                 per_view[name].append(np.mean((frame.recoloured(rows, sh_dc, sh_rest) - reference) ** 2))
             for index, (_, keep) in enumerate(candidates):
                 per_view[index].append(np.mean((frame.subset(keep) - reference) ** 2))
-        renderer = frame = None
+            for key, (keep, zero) in zeroings.items():
+                image = frame.variant(keep=keep, rows=zero, sh_dc=self.cloud.sh_dc[zero], sh_rest=no_ac[:zero.size])
+                per_view[key].append(np.mean((image - reference) ** 2))
+        renderer = frame = no_ac = None
+        self._zeroed_mse = {key: float(np.mean(per_view[key])) for key in zeroings}
         if bar is not None:
             bar.update(1 + len(PRUNE_THRESHOLDS) - 1 + len(self.importance_shares))
         n = self.cloud.num_gaussians
@@ -371,11 +379,29 @@ class RateController:
         self.rendered_mse_ = {name: float(np.mean(per_view[name])) for name in recolours}
         return self._sensitivities(errors, self.rendered_mse_, bar)
 
+    def _dc_only_applies(self, names: Any) -> bool:
+        """Whether the DC-only bars are a choice: an SH attribute among ``names`` whose stage codes the DC
+        apart, and a template that does not set its own DC-only Gaussians."""
+        return "sh" in names and self.stage_ is not None and not self.stage_.uses_dc and not self.template.dc_only
+
+    def _zeroings(self, candidates: list[tuple[dict[str, float], np.ndarray]],
+                  names: Any) -> dict[tuple[float, int], tuple[np.ndarray | None, np.ndarray]]:
+        """Per DC-only bar and pruning choice (0: none, ``i + 1``: ``candidates[i]``), the Gaussians kept
+        (a mask, None for all) and those of them the bar leaves DC-only, flagged among the kept ones
+        (:func:`.rate_sh_degree.kept_flags`); empty when the bars are no choice."""
+        if not self._dc_only_applies(names):
+            return {}
+        energy = cloud_energy(self.cloud)
+        kept = [None] + [keep for _, keep in candidates]
+        everything = np.arange(self.cloud.num_gaussians)
+        return {(value, j): (keep, kept_flags(energy, everything if keep is None else np.flatnonzero(keep), value))
+                for value in DC_ONLY_BARS if value > 0 for j, keep in enumerate(kept)}
+
     def _fit_dc_only(self, rows: np.ndarray, rates: dict[str, np.ndarray], bar: Any = None) -> list[DcOnlyChoice]:
         """The DC-only energy bars to choose between, measured (:func:`.rate_sh_degree.fit_choices`) on
-        the probe of ``rows``; bar 0 alone when the template sets its own DC-only Gaussians, the SH
-        stage codes the DC inside its features, or there is no SH attribute."""
-        if "sh" not in rates or self.stage_ is None or self.stage_.uses_dc or self.template.dc_only:
+        the probe of ``rows``, with the zeroing errors rendered by :meth:`_calibrate`; bar 0 alone when
+        they are no choice (:meth:`_dc_only_applies`)."""
+        if not self._dc_only_applies(rates):
             return [DcOnlyChoice(0.0)]
         probe = self.cloud.select(rows)
         scale = self.cloud.num_gaussians / probe.num_gaussians
@@ -387,20 +413,10 @@ class RateController:
             return scale * sizes.get("sh", 0) + sizes.get("sh_state", 0)
 
         def zeroing_errors(value: float) -> tuple[float, ...]:
-            out = []
-            for settings, _, prune_mse in self.prune_:
-                keep = self._kept_rows(settings)
-                out.append(max(self._rendered_mse(zeroed(self.cloud.select(keep), value), keep) - prune_mse, 0.0))
-            return tuple(out)
+            return tuple(max(self._zeroed_mse[(value, j)] - prune_mse, 0.0)
+                         for j, (_, _, prune_mse) in enumerate(self.prune_))
 
         return fit_choices(self.cloud, encode_probe, zeroing_errors, bar=bar)
-
-    def _kept_rows(self, prune: dict[str, float]) -> np.ndarray:
-        """The rows a pruning candidate (:attr:`prune_`'s rate-point settings) keeps, as :meth:`_prune_candidates` chose them."""
-        n = self.cloud.num_gaussians
-        if prune["keep_share"] < 1.0:
-            return most_important(self.importance_, np.arange(n), keep_count(n, prune["keep_share"]))
-        return np.flatnonzero(self.cloud.activated_opacities() >= prune["min_opacity"])
 
     def _dc_factor(self, settings: dict[str, int], name: str) -> float:
         """The factor of attribute ``name``'s bytes under the settings' DC-only bar."""

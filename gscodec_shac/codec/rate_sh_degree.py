@@ -76,10 +76,21 @@ def zeroed(cloud: GaussianCloud, bar: float) -> GaussianCloud:
     return cloud.with_ac_matrix(ac)
 
 
+def cloud_energy(cloud: GaussianCloud) -> np.ndarray:
+    """(N,) each Gaussian's view-dependent energy as the bars rank it: AC energy times opacity (the
+    encoder's default weight, :func:`.sh_degree.ac_energy`; row by row, so a subset's is its rows')."""
+    return degrees.ac_energy(cloud.ac_matrix(), cloud.activated_opacities())
+
+
 def whole_cloud_flags(cloud: GaussianCloud, bar: float) -> np.ndarray:
-    """(N,) bool: the Gaussians the bar leaves DC-only, by AC energy times opacity (the encoder's
-    default weight, :func:`.sh_degree.ac_energy`)."""
-    return degrees.dc_only_flags(degrees.ac_energy(cloud.ac_matrix(), cloud.activated_opacities()), 0.0, bar)
+    """(N,) bool: the Gaussians the bar leaves DC-only (:func:`cloud_energy`)."""
+    return degrees.dc_only_flags(cloud_energy(cloud), 0.0, bar)
+
+
+def kept_flags(energy: np.ndarray, kept: np.ndarray, bar: float) -> np.ndarray:
+    """The rows of ``kept`` (ascending) the bar leaves DC-only in ``cloud.select(kept)``, given the whole
+    cloud's :func:`cloud_energy`: ``kept[whole_cloud_flags(cloud.select(kept), bar)]``."""
+    return kept[degrees.dc_only_flags(energy[kept], 0.0, bar)]
 
 
 def fit_choices(

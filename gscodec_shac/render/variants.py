@@ -8,7 +8,9 @@ they were, so the per-Gaussian work of a render (projection, shading, depth sort
   are the cloud's without the dropped Gaussians' entries (lists run by depth, then by row, and
   dropping rows keeps the order of the others);
 * a **recoloured** cloud (some rows' SH coefficients replaced, their means, shapes and
-  opacities not): the cloud's lists, with those rows' view colours in the depth-sorted rows.
+  opacities not): the cloud's lists, with those rows' view colours in the depth-sorted rows;
+* both at once (a subset with some of its rows recoloured, e.g. a pruning whose faintest
+  view-dependent colours are zeroed).
 
 Each image equals a fresh :class:`Renderer`'s of the variant bit for bit (the per-Gaussian
 kernels work row by row): tests/test_render.py.
@@ -22,6 +24,7 @@ from typing import Sequence
 import numpy as np
 
 from gscodec_shac.camera import Camera
+from gscodec_shac.render.binning import TileBins
 from gscodec_shac.render.projection import P_R
 from gscodec_shac.render.renderer import Frame, Renderer, parse_background
 from gscodec_shac.render.shading import view_colors
@@ -46,22 +49,21 @@ class FrameVariants:
 
     def subset(self, keep: np.ndarray) -> np.ndarray:
         """The image of ``cloud.select(keep)`` (``keep``: ascending rows, or a boolean mask over the rows)."""
-        bins = self.frame.bins
-        mask = np.asarray(keep)
-        if mask.dtype != np.bool_:
-            mask = np.zeros(self.renderer.num_gaussians, dtype=np.bool_)
-            mask[keep] = True
-        if self._pair_rows is None:
-            self._pair_rows = bins.order[bins.ids]
-        listed = mask[self._pair_rows]
-        kept_before = np.concatenate([[0], np.cumsum(listed, dtype=np.int64)])
-        lists = dataclasses.replace(bins, tile_start=kept_before[bins.tile_start], ids=bins.ids[listed])
-        return self.renderer.blend(lists, self.camera, self.background)[0]
+        return self.variant(keep=keep)
 
     def recoloured(self, rows: np.ndarray, sh_dc: np.ndarray, sh_rest: np.ndarray) -> np.ndarray:
         """The image of the cloud with the SH coefficients of ``rows`` replaced by ``sh_dc`` (len(rows), 3)
         and ``sh_rest`` (len(rows), K, 3), in the order of ``rows``."""
+        return self.variant(rows=rows, sh_dc=sh_dc, sh_rest=sh_rest)
+
+    def variant(self, keep: np.ndarray | None = None, rows: np.ndarray | None = None,
+                sh_dc: np.ndarray | None = None, sh_rest: np.ndarray | None = None) -> np.ndarray:
+        """The image of the cloud recoloured (``rows``' SH replaced, as :meth:`recoloured`), then reduced
+        to ``keep`` (as :meth:`subset`); either may be left out."""
         bins = self.frame.bins
+        lists = bins if keep is None else self._subset_lists(keep)
+        if rows is None:
+            return self.renderer.blend(lists, self.camera, self.background)[0]
         entry = np.full(self.renderer.num_gaussians, -1, dtype=np.int64)
         entry[bins.order] = np.arange(bins.order.size)
         entries = entry[np.asarray(rows)]
@@ -71,8 +73,21 @@ class FrameVariants:
                               np.ascontiguousarray(sh_dc[listed]), np.ascontiguousarray(sh_rest[listed]),
                               self.camera.center)
         saved = bins.pack[entries, P_R:P_R + 3].copy()
-        bins.pack[entries, P_R:P_R + 3] = colours
+        bins.pack[entries, P_R:P_R + 3] = colours  # the subset's lists share the pack
         try:
-            return self.renderer.blend(bins, self.camera, self.background)[0]
+            return self.renderer.blend(lists, self.camera, self.background)[0]
         finally:
             bins.pack[entries, P_R:P_R + 3] = saved
+
+    def _subset_lists(self, keep: np.ndarray) -> TileBins:
+        """The cloud's tile lists without the entries of the rows ``keep`` leaves out."""
+        bins = self.frame.bins
+        mask = np.asarray(keep)
+        if mask.dtype != np.bool_:
+            mask = np.zeros(self.renderer.num_gaussians, dtype=np.bool_)
+            mask[keep] = True
+        if self._pair_rows is None:
+            self._pair_rows = bins.order[bins.ids]
+        listed = mask[self._pair_rows]
+        kept_before = np.concatenate([[0], np.cumsum(listed, dtype=np.int64)])
+        return dataclasses.replace(bins, tile_start=kept_before[bins.tile_start], ids=bins.ids[listed])
