@@ -401,6 +401,15 @@ def test_a_hung_x265_worker_is_killed_and_reported_after_the_last_attempt():
         x265_processes.encode(frames, "gray10le", options, timeout=1e-4)
 
 
+def test_a_loaded_machine_gives_a_piece_longer_before_its_worker_is_thought_hung():
+    from gscodec_shac.codec.grid.x265_processes import BASE_TIMEOUT, PER_SAMPLE, piece_timeout
+
+    idle = piece_timeout(10**6, load=0.3, cores=2)
+    assert idle == BASE_TIMEOUT + PER_SAMPLE * 10**6 == piece_timeout(10**6, load=2.0, cores=2)
+    assert piece_timeout(10**6, load=13.0, cores=2) == pytest.approx(6.5 * idle)
+    assert piece_timeout(0, load=1.0, cores=0) == BASE_TIMEOUT
+
+
 def test_x265_refusing_its_settings_in_a_worker_is_the_same_clear_error(monkeypatch):
     from gscodec_shac.codec.grid import x265_processes
 

@@ -38,7 +38,8 @@ from gscodec_shac.errors import GscodecError
 ENV = "GSCODEC_X265_PROCESSES"
 #: Attempts per piece (the first and two re-runs).
 ATTEMPTS = 3
-#: Seconds a piece may run before its worker is thought hung: this much, plus PER_SAMPLE each.
+#: Seconds a piece may run before its worker is thought hung: this much, plus PER_SAMPLE each, times
+#: the machine's load per core when above 1 (:func:`piece_timeout`).
 BASE_TIMEOUT = 30.0
 PER_SAMPLE = 20e-6  # ~10x x265 `slow`'s time per sample on this 2-core machine
 #: The length prefix of every message, request or reply (the worker reads and writes the same).
@@ -160,9 +161,9 @@ def encode(frames: list, pix_fmt: str, options: dict[str, str], timeout: float |
     Errors the encode itself raises (x265 refusing settings) come back as they are.
     """
     samples = sum(int(f.size) for f in frames)
-    limit = timeout if timeout is not None else BASE_TIMEOUT + PER_SAMPLE * samples
     failures = []
     for _ in range(ATTEMPTS):
+        limit = timeout if timeout is not None else piece_timeout(samples)
         worker = _take()
         try:
             status, value = worker.call(frames, pix_fmt, options, limit)
@@ -176,6 +177,15 @@ def encode(frames: list, pix_fmt: str, options: dict[str, str], timeout: float |
             raise value
         return value
     raise X265WorkerError(f"x265 failed in its worker process {ATTEMPTS} times: {'; '.join(failures)}")
+
+
+def piece_timeout(samples: int, load: float | None = None, cores: int | None = None) -> float:
+    """Seconds a piece of ``samples`` may take before its worker is thought hung: BASE_TIMEOUT plus
+    PER_SAMPLE each, stretched by the 1-minute load per core above 1 (``load``, ``cores``: the
+    machine's by default), so that a loaded machine's slow piece is not taken for a hung one."""
+    load = os.getloadavg()[0] if load is None else load
+    cores = (os.cpu_count() or 1) if cores is None else cores
+    return (BASE_TIMEOUT + PER_SAMPLE * samples) * max(1.0, load / max(cores, 1))
 
 
 def _say_retry(reason: str) -> None:
