@@ -8,7 +8,7 @@ Two sub-commands over directories written with ``GSCODEC_X265_DUMP=DIR``
     x265 the same multiset of inputs. Same input, two outputs: x265. Inputs that differ:
     an earlier stage of ours.
 
-``repeat DIR --times N [--extra :wpp=0]``  feed every kept piece (``frames-*.npz`` and its
+``repeat DIR --times N [--extra :wpp=0] [--bytes MIN:MAX]``  feed every kept piece (``frames-*.npz`` and its
     options) to x265 N times through the worker processes, optionally with x265 parameters
     appended, and count the distinct outputs per piece; prints CPU time per setting.
 
@@ -72,12 +72,13 @@ def compare(folders: list[str]) -> int:
     return len(differing)
 
 
-def repeat(folder: str, times: int, extra: str) -> int:
-    """Code every kept piece ``times`` times; print distinct outputs per piece and CPU seconds."""
+def repeat(folder: str, times: int, extra: str, sizes: tuple[int, int] = (0, 2**62)) -> int:
+    """Code every kept piece (of ``sizes`` bytes) ``times`` times; print distinct outputs per piece and CPU seconds."""
     pieces = {}
     for row in _records(folder):
-        pieces.setdefault((row["input"], _settings(row)), row)
-    changed = 0
+        if sizes[0] <= row["bytes"] <= sizes[1]:
+            pieces.setdefault((row["input"], _settings(row)), row)
+    changed, total_bytes, total_cpu = 0, 0, 0.0
     for (source, _), row in sorted(pieces.items(), key=lambda kv: -kv[1]["bytes"]):
         frames = x265_dump.load_frames(os.path.join(folder, f"frames-{source[:16]}.npz"))
         options = dict(row["options"])
@@ -91,10 +92,11 @@ def repeat(folder: str, times: int, extra: str) -> int:
         cpu = (after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime) / times
         sizes = ", ".join(f"{len(s)} B x{n}" for s, n in seen.most_common())
         changed += len(seen) > 1
+        total_bytes, total_cpu = total_bytes + len(seen.most_common(1)[0][0]), total_cpu + cpu
         print(f"{source[:16]} {len(frames)}x{list(frames[0].shape)} {options['x265-params'][:40]}... "
               f"{len(seen)} outputs ({sizes}); {cpu:.2f} CPU s, {(time.monotonic() - wall) / times:.2f} s wall per encode")
     print(f"pieces {len(pieces)}, times {times}, extra {extra!r}: pieces with more than one output: {changed}; "
-          f"load {os.getloadavg()[0]:.2f}")
+          f"{total_bytes} bytes, {total_cpu:.2f} CPU s per round (most common outputs); load {os.getloadavg()[0]:.2f}")
     return changed
 
 
@@ -107,11 +109,14 @@ def main() -> None:
     rep_parser.add_argument("folder")
     rep_parser.add_argument("--times", type=int, default=10)
     rep_parser.add_argument("--extra", default="", help="x265 parameters appended, e.g. :wpp=0")
+    rep_parser.add_argument("--bytes", default="0:4611686018427387904", metavar="MIN:MAX",
+                            help="only the pieces whose recorded stream has MIN-MAX bytes")
     args = parser.parse_args()
     if args.command == "compare":
         compare(args.folders)
     else:
-        repeat(args.folder, args.times, args.extra)
+        low, high = (int(v) for v in args.bytes.split(":"))
+        repeat(args.folder, args.times, args.extra, (low, high))
 
 
 if __name__ == "__main__":
