@@ -8,6 +8,10 @@ Two sub-commands over directories written with ``GSCODEC_X265_DUMP=DIR``
     x265 the same multiset of inputs. Same input, two outputs: x265. Inputs that differ:
     an earlier stage of ours.
 
+``shuffle DIR --rounds N``  code every kept piece N times, in a new random order each round and
+    two at once, so every worker codes each piece after a different history; count the outputs
+    that differ from the recorded ones.
+
 ``repeat DIR --times N [--extra :wpp=0] [--bytes MIN:MAX]``  feed every kept piece (``frames-*.npz`` and its
     options) to x265 N times through the worker processes, optionally with x265 parameters
     appended, and count the distinct outputs per piece; prints CPU time per setting.
@@ -100,6 +104,37 @@ def repeat(folder: str, times: int, extra: str, sizes: tuple[int, int] = (0, 2**
     return changed
 
 
+def shuffle(folder: str, rounds: int, seed: int = 0) -> int:
+    """Code every kept piece ``rounds`` times in a new random order each round, two at once through
+    the workers (as the encode scheduler does), so each worker codes them after a different history;
+    count the outputs that differ from the recorded ones."""
+    import hashlib
+    import random
+    from concurrent.futures import ThreadPoolExecutor
+
+    pieces = {}
+    for row in _records(folder):
+        pieces.setdefault((row["input"], _settings(row)), row)
+    frames = {key: x265_dump.load_frames(os.path.join(folder, f"frames-{key[0][:16]}.npz")) for key in pieces}
+
+    def code(key: tuple[str, str]) -> bool:
+        row = pieces[key]
+        stream = x265_processes.encode(frames[key], row["pix_fmt"], row["options"])
+        return hashlib.sha256(stream).hexdigest() == row["output"]
+
+    order, differing, shuffler = list(pieces), collections.Counter(), random.Random(seed)
+    with ThreadPoolExecutor(2) as pool:
+        for index in range(rounds):
+            shuffler.shuffle(order)
+            for key, same in zip(order, pool.map(code, order)):
+                if not same:
+                    differing[key[0][:16]] += 1
+            print(f"round {index + 1}: {sum(differing.values())} differing so far; load {os.getloadavg()[0]:.2f}", flush=True)
+    print(f"pieces {len(pieces)}, rounds {rounds}: {len(pieces) * rounds} encodes, differing from the record: "
+          f"{sum(differing.values())} {dict(differing)}")
+    return sum(differing.values())
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
@@ -111,9 +146,15 @@ def main() -> None:
     rep_parser.add_argument("--extra", default="", help="x265 parameters appended, e.g. :wpp=0")
     rep_parser.add_argument("--bytes", default="0:4611686018427387904", metavar="MIN:MAX",
                             help="only the pieces whose recorded stream has MIN-MAX bytes")
+    mix_parser = commands.add_parser("shuffle")
+    mix_parser.add_argument("folder")
+    mix_parser.add_argument("--rounds", type=int, default=5)
+    mix_parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     if args.command == "compare":
         compare(args.folders)
+    elif args.command == "shuffle":
+        shuffle(args.folder, args.rounds, args.seed)
     else:
         low, high = (int(v) for v in args.bytes.split(":"))
         repeat(args.folder, args.times, args.extra, (low, high))
