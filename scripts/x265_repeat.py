@@ -8,7 +8,7 @@ Two sub-commands over directories written with ``GSCODEC_X265_DUMP=DIR``
     x265 the same multiset of inputs. Same input, two outputs: x265. Inputs that differ:
     an earlier stage of ours.
 
-``shuffle DIR --rounds N``  code every kept piece N times, in a new random order each round and
+``shuffle DIR --rounds N [--extra :wpp=0]``  code every kept piece N times, in a new random order each round and
     two at once, so every worker codes each piece after a different history; count the outputs
     that differ from the recorded ones.
 
@@ -104,10 +104,10 @@ def repeat(folder: str, times: int, extra: str, sizes: tuple[int, int] = (0, 2**
     return changed
 
 
-def shuffle(folder: str, rounds: int, seed: int = 0) -> int:
+def shuffle(folder: str, rounds: int, seed: int = 0, extra: str = "") -> int:
     """Code every kept piece ``rounds`` times in a new random order each round, two at once through
     the workers (as the encode scheduler does), so each worker codes them after a different history;
-    count the outputs that differ from the recorded ones."""
+    count the pieces with more than one output (without ``extra``, the recorded output counts too)."""
     import hashlib
     import random
     from concurrent.futures import ThreadPoolExecutor
@@ -116,23 +116,28 @@ def shuffle(folder: str, rounds: int, seed: int = 0) -> int:
     for row in _records(folder):
         pieces.setdefault((row["input"], _settings(row)), row)
     frames = {key: x265_dump.load_frames(os.path.join(folder, f"frames-{key[0][:16]}.npz")) for key in pieces}
+    seen: dict = {key: collections.Counter() if extra else collections.Counter({(row["output"], row["bytes"]): 0})
+                  for key, row in pieces.items()}
 
-    def code(key: tuple[str, str]) -> bool:
+    def code(key: tuple[str, str]) -> tuple[str, int]:
         row = pieces[key]
-        stream = x265_processes.encode(frames[key], row["pix_fmt"], row["options"])
-        return hashlib.sha256(stream).hexdigest() == row["output"]
+        options = dict(row["options"], **{"x265-params": row["options"]["x265-params"] + extra})
+        stream = x265_processes.encode(frames[key], row["pix_fmt"], options)
+        return hashlib.sha256(stream).hexdigest(), len(stream)
 
-    order, differing, shuffler = list(pieces), collections.Counter(), random.Random(seed)
+    order, shuffler = list(pieces), random.Random(seed)
     with ThreadPoolExecutor(2) as pool:
         for index in range(rounds):
             shuffler.shuffle(order)
-            for key, same in zip(order, pool.map(code, order)):
-                if not same:
-                    differing[key[0][:16]] += 1
-            print(f"round {index + 1}: {sum(differing.values())} differing so far; load {os.getloadavg()[0]:.2f}", flush=True)
-    print(f"pieces {len(pieces)}, rounds {rounds}: {len(pieces) * rounds} encodes, differing from the record: "
-          f"{sum(differing.values())} {dict(differing)}")
-    return sum(differing.values())
+            for key, output in zip(order, pool.map(code, order)):
+                seen[key][output] += 1
+            varying = sum(len(c) > 1 for c in seen.values())
+            print(f"round {index + 1}: pieces with more than one output so far {varying}; "
+                  f"load {os.getloadavg()[0]:.2f}", flush=True)
+    varying = {key[0][:16]: [f"{size} B x{n}" for (_, size), n in c.most_common()] for key, c in seen.items() if len(c) > 1}
+    print(f"pieces {len(pieces)}, rounds {rounds}, extra {extra!r}: {len(pieces) * rounds} encodes; "
+          f"pieces with more than one output: {len(varying)} {varying}")
+    return len(varying)
 
 
 def main() -> None:
@@ -150,11 +155,12 @@ def main() -> None:
     mix_parser.add_argument("folder")
     mix_parser.add_argument("--rounds", type=int, default=5)
     mix_parser.add_argument("--seed", type=int, default=0)
+    mix_parser.add_argument("--extra", default="", help="x265 parameters appended, e.g. :wpp=0")
     args = parser.parse_args()
     if args.command == "compare":
         compare(args.folders)
     elif args.command == "shuffle":
-        shuffle(args.folder, args.rounds, args.seed)
+        shuffle(args.folder, args.rounds, args.seed, args.extra)
     else:
         low, high = (int(v) for v in args.bytes.split(":"))
         repeat(args.folder, args.times, args.extra, (low, high))
