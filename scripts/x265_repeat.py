@@ -130,6 +130,9 @@ def shuffle(folder: str, rounds: int, seed: int = 0, extra: str = "") -> int:
         for index in range(rounds):
             shuffler.shuffle(order)
             for key, output in zip(order, pool.map(code, order)):
+                if output not in seen[key] and seen[key]:
+                    print(f"  {key[0][:16]}: a new output of {output[1]} B (seen: "
+                          f"{', '.join(f'{size} B x{n}' for (_, size), n in seen[key].items())})", flush=True)
                 seen[key][output] += 1
             varying = sum(len(c) > 1 for c in seen.values())
             print(f"round {index + 1}: pieces with more than one output so far {varying}; "
