@@ -416,3 +416,34 @@ def test_x265_refusing_its_settings_in_a_worker_is_the_same_clear_error(monkeypa
     monkeypatch.setenv(x265_processes.ENV, "1")
     with pytest.raises(ValidationError, match="x265 refused the settings"):
         x265_processes.encode(list(_x265_planes()[:1]), "gray10le", {"preset": "no-such-preset", "x265-params": "qp=30:log-level=error"})
+
+
+@pytest.mark.parametrize("in_workers", [True, False])
+def test_x265_dump_records_each_stream_input_and_output(in_workers, tmp_path, monkeypatch):
+    """GSCODEC_X265_DUMP: one record per stream whose hashes and kept frames re-code to the same bytes."""
+    import hashlib
+    import json
+
+    from gscodec_shac.codec.grid import x265_dump, x265_processes
+    from gscodec_shac.codec.grid.hevc import encode_frames
+
+    planes = _x265_planes()
+    monkeypatch.setenv(x265_processes.ENV, "1" if in_workers else "0")
+    x265_processes.shutdown()  # workers copy the environment when they start
+    monkeypatch.delenv(x265_dump.ENV, raising=False)
+    plain = get_codec("hevc", layout="gray").encode(planes, 10, 26)
+    assert not list(tmp_path.iterdir())
+    x265_processes.shutdown()
+    monkeypatch.setenv(x265_dump.ENV, str(tmp_path / "dump"))
+    assert get_codec("hevc", layout="gray").encode(planes, 10, 26) == plain  # the hook changes no byte
+    x265_processes.shutdown()
+    rows = [json.loads(line) for path in (tmp_path / "dump").glob("x265-*.jsonl") for line in path.read_text().splitlines()]
+    assert len(rows) == len(planes)  # gray: one stream per channel
+    assert sorted(r["input"] for r in rows) == sorted(x265_dump.input_digest([p << 0]) for p in planes)
+    monkeypatch.delenv(x265_dump.ENV)
+    for row in rows:
+        frames = x265_dump.load_frames(str(tmp_path / "dump" / f"frames-{row['input'][:16]}.npz"))
+        assert x265_dump.input_digest(frames) == row["input"]
+        stream = encode_frames(frames, row["pix_fmt"], row["options"])
+        assert (hashlib.sha256(stream).hexdigest(), len(stream)) == (row["output"], row["bytes"])
+        assert stream in plain

@@ -41,7 +41,7 @@ from typing import Iterator
 import av
 import numpy as np
 
-from gscodec_shac.codec.grid import x265_processes
+from gscodec_shac.codec.grid import x265_dump, x265_processes
 from gscodec_shac.codec.grid.base import EncodeParts, GridCodec, PlaneSink, join_chunks, register_codec, split_chunks
 from gscodec_shac.errors import BitstreamError, CodecUnavailableError, ValidationError
 
@@ -316,7 +316,9 @@ def encode_frames(frames: list[np.ndarray], pix_fmt: str, options: dict[str, str
         raise ValidationError(
             f"hevc: x265 refused the settings {options} for a {width}x{height} {pix_fmt} frame: {exc}"
         ) from None
-    return b"".join(bytes(packet) for packet in packets)
+    stream = b"".join(bytes(packet) for packet in packets)
+    x265_dump.record(frames, pix_fmt, options, stream)  # GSCODEC_X265_DUMP=DIR only
+    return stream
 
 
 # x265_encoder_open fills process-wide tables (x265_setup_primitives: "if the SAD

@@ -10,8 +10,8 @@ and ended when this process exits (or when its stdin closes). A request is a
 reply a :data:`LENGTH`-prefixed pickle on its stdout; :func:`read_into` reads at both ends.
 No ``multiprocessing``, so the caller's ``__main__`` is never imported again. A worker that
 dies, or a piece that runs far past its expected time, is replaced and the piece coded again:
-x265 at a fixed QP with one frame thread writes the same bytes every time, so a re-run
-changes only the wall time.
+x265 at a fixed QP with one frame thread writes the same bytes (but for a rare run-to-run
+difference inside x265: docs/reliability.md, "Known gaps"), so a re-run changes only the wall time.
 
 ``GSCODEC_X265_PROCESSES=0`` codes in the calling process instead (the same bytes).
 """

@@ -1,0 +1,173 @@
+"""Is a run-to-run byte difference in x265's input (ours) or in x265? (docs/reliability.md)
+
+Two sub-commands over directories written with ``GSCODEC_X265_DUMP=DIR``
+(:mod:`gscodec_shac.codec.grid.x265_dump`):
+
+``compare DIR...``  one directory per run of the same encode: for every input (frames'
+    sha256) the distinct outputs x265 wrote across the runs, and whether every run fed
+    x265 the same multiset of inputs. Same input, two outputs: x265. Inputs that differ:
+    an earlier stage of ours.
+
+``shuffle DIR --rounds N [--extra :wpp=0]``  code every kept piece N times, in a new random order each round and
+    two at once, so every worker codes each piece after a different history; count the outputs
+    that differ from the recorded ones.
+
+``repeat DIR --times N [--extra :wpp=0] [--bytes MIN:MAX]``  feed every kept piece (``frames-*.npz`` and its
+    options) to x265 N times through the worker processes, optionally with x265 parameters
+    appended, and count the distinct outputs per piece; prints CPU time per setting.
+
+Example (a stress loop under load):
+    for i in 1 2 3; do GSCODEC_X265_DUMP=out/d$i gscodec-shac encode scene.ply out/r$i.gsc \\
+        -r shac_ladder:rp4 --sh pca --er 0.97 -q; done
+    python scripts/x265_repeat.py compare out/d1 out/d2 out/d3
+    python scripts/x265_repeat.py repeat out/d1 --times 20 --extra :wpp=0
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import glob
+import json
+import os
+import resource
+import time
+
+from gscodec_shac.codec.grid import x265_dump, x265_processes
+
+
+def _records(folder: str) -> list[dict]:
+    rows = []
+    for path in sorted(glob.glob(os.path.join(folder, "x265-*.jsonl"))):
+        with open(path, encoding="utf-8") as lines:
+            rows += [json.loads(line) for line in lines if line.strip()]
+    return rows
+
+
+def _settings(row: dict) -> str:
+    return json.dumps([row["pix_fmt"], row["options"]], sort_keys=True)
+
+
+def compare(folders: list[str]) -> int:
+    """Print per-input output counts across runs; the number of inputs with several outputs."""
+    outputs: dict[tuple[str, str], collections.Counter] = collections.defaultdict(collections.Counter)
+    sizes: dict[str, int] = {}
+    inputs_per_run = []
+    for folder in folders:
+        rows = _records(folder)
+        inputs_per_run.append(collections.Counter((r["input"], _settings(r)) for r in rows))
+        for row in rows:
+            outputs[(row["input"], _settings(row))][row["output"]] += 1
+            sizes[row["output"]] = row["bytes"]
+    same_inputs = all(run == inputs_per_run[0] for run in inputs_per_run)
+    differing = {key: seen for key, seen in outputs.items() if len(seen) > 1}
+    print(f"runs {len(folders)}, pieces per run {sorted({sum(r.values()) for r in inputs_per_run})}, "
+          f"distinct (input, settings) {len(outputs)}, every run fed x265 the same inputs: {same_inputs}")
+    for (source, settings), seen in differing.items():
+        shown = ", ".join(f"{sizes[o]} B x{n}" for o, n in seen.most_common())
+        print(f"  same input {source[:16]} {settings[:90]}: {len(seen)} outputs ({shown})")
+    if not same_inputs:
+        everywhere = set.intersection(*(set(r) for r in inputs_per_run))
+        for index, run in enumerate(inputs_per_run):
+            extra = [k[0][:16] for k in run if k not in everywhere]
+            if extra:
+                print(f"  run {folders[index]}: inputs not in every run: {extra}")
+    print(f"inputs with more than one output: {len(differing)}")
+    return len(differing)
+
+
+def repeat(folder: str, times: int, extra: str, sizes: tuple[int, int] = (0, 2**62)) -> int:
+    """Code every kept piece (of ``sizes`` bytes) ``times`` times; print distinct outputs per piece and CPU seconds."""
+    pieces = {}
+    for row in _records(folder):
+        if sizes[0] <= row["bytes"] <= sizes[1]:
+            pieces.setdefault((row["input"], _settings(row)), row)
+    changed, total_bytes, total_cpu = 0, 0, 0.0
+    for (source, _), row in sorted(pieces.items(), key=lambda kv: -kv[1]["bytes"]):
+        frames = x265_dump.load_frames(os.path.join(folder, f"frames-{source[:16]}.npz"))
+        options = dict(row["options"])
+        options["x265-params"] += extra
+        seen: collections.Counter = collections.Counter()
+        before, wall = resource.getrusage(resource.RUSAGE_CHILDREN), time.monotonic()
+        for _ in range(times):
+            seen[x265_processes.encode(frames, row["pix_fmt"], options)] += 1
+        x265_processes.shutdown()  # the workers' CPU time is counted once they have ended
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = (after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime) / times
+        sizes = ", ".join(f"{len(s)} B x{n}" for s, n in seen.most_common())
+        changed += len(seen) > 1
+        total_bytes, total_cpu = total_bytes + len(seen.most_common(1)[0][0]), total_cpu + cpu
+        print(f"{source[:16]} {len(frames)}x{list(frames[0].shape)} {options['x265-params'][:40]}... "
+              f"{len(seen)} outputs ({sizes}); {cpu:.2f} CPU s, {(time.monotonic() - wall) / times:.2f} s wall per encode")
+    print(f"pieces {len(pieces)}, times {times}, extra {extra!r}: pieces with more than one output: {changed}; "
+          f"{total_bytes} bytes, {total_cpu:.2f} CPU s per round (most common outputs); load {os.getloadavg()[0]:.2f}")
+    return changed
+
+
+def shuffle(folder: str, rounds: int, seed: int = 0, extra: str = "") -> int:
+    """Code every kept piece ``rounds`` times in a new random order each round, two at once through
+    the workers (as the encode scheduler does), so each worker codes them after a different history;
+    count the pieces with more than one output (without ``extra``, the recorded output counts too)."""
+    import hashlib
+    import random
+    from concurrent.futures import ThreadPoolExecutor
+
+    pieces = {}
+    for row in _records(folder):
+        pieces.setdefault((row["input"], _settings(row)), row)
+    frames = {key: x265_dump.load_frames(os.path.join(folder, f"frames-{key[0][:16]}.npz")) for key in pieces}
+    seen: dict = {key: collections.Counter() if extra else collections.Counter({(row["output"], row["bytes"]): 0})
+                  for key, row in pieces.items()}
+
+    def code(key: tuple[str, str]) -> tuple[str, int]:
+        row = pieces[key]
+        options = dict(row["options"], **{"x265-params": row["options"]["x265-params"] + extra})
+        stream = x265_processes.encode(frames[key], row["pix_fmt"], options)
+        return hashlib.sha256(stream).hexdigest(), len(stream)
+
+    order, shuffler = list(pieces), random.Random(seed)
+    with ThreadPoolExecutor(2) as pool:
+        for index in range(rounds):
+            shuffler.shuffle(order)
+            for key, output in zip(order, pool.map(code, order)):
+                if output not in seen[key] and seen[key]:
+                    print(f"  {key[0][:16]}: a new output of {output[1]} B (seen: "
+                          f"{', '.join(f'{size} B x{n}' for (_, size), n in seen[key].items())})", flush=True)
+                seen[key][output] += 1
+            varying = sum(len(c) > 1 for c in seen.values())
+            print(f"round {index + 1}: pieces with more than one output so far {varying}; "
+                  f"load {os.getloadavg()[0]:.2f}", flush=True)
+    varying = {key[0][:16]: [f"{size} B x{n}" for (_, size), n in c.most_common()] for key, c in seen.items() if len(c) > 1}
+    print(f"pieces {len(pieces)}, rounds {rounds}, extra {extra!r}: {len(pieces) * rounds} encodes; "
+          f"pieces with more than one output: {len(varying)} {varying}")
+    return len(varying)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    cmp_parser = commands.add_parser("compare")
+    cmp_parser.add_argument("folders", nargs="+")
+    rep_parser = commands.add_parser("repeat")
+    rep_parser.add_argument("folder")
+    rep_parser.add_argument("--times", type=int, default=10)
+    rep_parser.add_argument("--extra", default="", help="x265 parameters appended, e.g. :wpp=0")
+    rep_parser.add_argument("--bytes", default="0:4611686018427387904", metavar="MIN:MAX",
+                            help="only the pieces whose recorded stream has MIN-MAX bytes")
+    mix_parser = commands.add_parser("shuffle")
+    mix_parser.add_argument("folder")
+    mix_parser.add_argument("--rounds", type=int, default=5)
+    mix_parser.add_argument("--seed", type=int, default=0)
+    mix_parser.add_argument("--extra", default="", help="x265 parameters appended, e.g. :wpp=0")
+    args = parser.parse_args()
+    if args.command == "compare":
+        compare(args.folders)
+    elif args.command == "shuffle":
+        shuffle(args.folder, args.rounds, args.seed, args.extra)
+    else:
+        low, high = (int(v) for v in args.bytes.split(":"))
+        repeat(args.folder, args.times, args.extra, (low, high))
+
+
+if __name__ == "__main__":
+    main()
