@@ -10,7 +10,7 @@ import pytest
 
 from gscodec_shac.codec import Decoder, load_rate_point
 from gscodec_shac.codec.rate_control import TEMPLATE, RateController, Target
-from gscodec_shac.codec.rate_sh_degree import DC_ONLY_BARS, RATIO_QPS, whole_cloud_flags, zeroed
+from gscodec_shac.codec.rate_sh_degree import DC_ONLY_BARS, RATIO_QPS, whole_cloud_flags
 
 
 @pytest.fixture(scope="module")
@@ -25,6 +25,13 @@ def half_flat(small_scene):
 @pytest.fixture(scope="module")
 def controller(half_flat, small_scene):
     return RateController(half_flat, views=small_scene.cameras, workers=2).fit()
+
+
+def zeroed(cloud, bar: float):
+    """``cloud`` with the AC coefficients of the Gaussians the bar flags zeroed (the reference)."""
+    ac = cloud.ac_matrix().copy()
+    ac[whole_cloud_flags(cloud, bar)] = 0.0
+    return cloud.with_ac_matrix(ac)
 
 
 def test_zeroing_errors_rendered_from_one_frame_are_those_of_fresh_renders(controller, half_flat):

@@ -65,7 +65,8 @@ from gscodec_shac.codec.encoder import Encoder, position_set_cache_key
 from gscodec_shac.codec.importance import gaussian_importance, importance_views, keep_count, most_important
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode, set_order
 from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
-from gscodec_shac.codec.rate_sh_degree import DC_ONLY_BARS, DcOnlyChoice, cloud_energy, fit_choices, kept_flags
+from gscodec_shac.codec.rate_sh_degree import (DC_ONLY_BARS, RATIO_QPS, DcOnlyChoice, cloud_energy, fit_choices,
+                                                kept_flags)
 from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac import limits
 from gscodec_shac.limits import default_workers
@@ -416,7 +417,8 @@ class RateController:
             return tuple(max(self._zeroed_mse[(value, j)] - prune_mse, 0.0)
                          for j, (_, _, prune_mse) in enumerate(self.prune_))
 
-        return fit_choices(self.cloud, encode_probe, zeroing_errors, bar=bar)
+        without = {qp: float(rates["sh"][PROBE_QPS.index(qp)]) for qp in RATIO_QPS}  # the probe's own encodes
+        return fit_choices(self.cloud, without, encode_probe, zeroing_errors, bar=bar)
 
     def _dc_factor(self, settings: dict[str, int], name: str) -> float:
         """The factor of attribute ``name``'s bytes under the settings' DC-only bar."""

@@ -31,7 +31,7 @@ whose other attributes are unchanged).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -69,13 +69,6 @@ class DcOnlyChoice:
         return {"dc_only_energy": self.bar} if self.bar > 0 else {}
 
 
-def zeroed(cloud: GaussianCloud, bar: float) -> GaussianCloud:
-    """``cloud`` with the AC coefficients of the Gaussians the bar flags (:func:`whole_cloud_flags`) zeroed."""
-    ac = cloud.ac_matrix().copy()
-    ac[whole_cloud_flags(cloud, bar)] = 0.0
-    return cloud.with_ac_matrix(ac)
-
-
 def cloud_energy(cloud: GaussianCloud) -> np.ndarray:
     """(N,) each Gaussian's view-dependent energy as the bars rank it: AC energy times opacity (the
     encoder's default weight, :func:`.sh_degree.ac_energy`; row by row, so a subset's is its rows')."""
@@ -95,6 +88,7 @@ def kept_flags(energy: np.ndarray, kept: np.ndarray, bar: float) -> np.ndarray:
 
 def fit_choices(
     cloud: GaussianCloud,
+    without: Mapping[int, float],
     encode_probe: Callable[[float, int], float],
     zeroing_errors: Callable[[float], tuple[float, ...]],
     bars: tuple[float, ...] = DC_ONLY_BARS,
@@ -102,13 +96,12 @@ def fit_choices(
 ) -> list[DcOnlyChoice]:
     """The measured :class:`DcOnlyChoice` of every bar in ``bars`` (bar 0 first, unchanged).
 
-    ``encode_probe(bar, qp)``: the SH bytes of the probe encoded at ``qp`` with the bar (0: none),
-    scaled as the rate model scales them; ``zeroing_errors(bar)``: the zeroing error under each pruning
+    ``without``: the SH bytes of the probe without a bar at each of :data:`RATIO_QPS` (the rate model's
+    own probe encodes), ``encode_probe(bar, qp)``: those bytes with the bar, scaled alike; ``zeroing_errors(bar)``: the zeroing error under each pruning
     candidate (``bar``: a progress bar advanced once per bar)."""
     out = [DcOnlyChoice(0.0)]
     if not any(value > 0 for value in bars):
         return out
-    without = {qp: encode_probe(0.0, qp) for qp in RATIO_QPS}
     for value in bars:
         if value <= 0:
             continue
