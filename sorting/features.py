@@ -25,9 +25,12 @@ def _normalise(name: str, values: np.ndarray, normalize: str) -> np.ndarray:
     else:
         lo = x.mean(axis=0)
         scale = float(np.sqrt(((x - lo) ** 2).mean()))
-    if scale <= 0 or not np.isfinite(scale):
-        scale = 1.0  # a constant attribute carries no ordering information
-    return (x - lo) / scale
+    return (x - lo) / _usable_scale(scale)
+
+
+def _usable_scale(scale: float) -> float:
+    """``scale``, or 1 when it is not positive and finite (a constant attribute carries no ordering information)."""
+    return scale if scale > 0 and np.isfinite(scale) else 1.0
 
 
 def _check_weight(name: str, weight: object) -> None:
@@ -113,9 +116,7 @@ def _prepare_parallel(attributes: Mapping[str, np.ndarray], weights: Mapping[str
     col = 0
     for name in kept:
         lo, hi = ranges[name]
-        scale = float((hi - lo).max())
-        if scale <= 0 or not np.isfinite(scale):
-            scale = 1.0
+        scale = _usable_scale(float((hi - lo).max()))
         scale_into(out, col, arrays[name], lo, scale, float(weights.get(name, 1.0)))
         col += arrays[name].shape[1]
     return out
