@@ -123,7 +123,7 @@ def measured(command: list[str], nice: int, root: Path = ROOT) -> dict:
 
 def chosen_rate_point(stream: Path, out: Path) -> Path | None:
     """The settings a ``--target-bpg`` encode chose (its stream's rate point: QPs, position bits,
-    pruning) written as the point ``chosen`` of a rate-point file ``out`` on the SHAC-auto template,
+    pruning, the SH stage with its DC-only bar) written as the point ``chosen`` of a rate-point file ``out`` on the SHAC-auto template,
     so a fixed encode codes the same configuration; None when the stream's rate point is not a
     SHAC-auto choice."""
     import yaml
@@ -140,6 +140,7 @@ def chosen_rate_point(stream: Path, out: Path) -> Path | None:
                                                                      "sh_features")})
     settings["attributes"] = {"positions": {"bits": attributes["positions"]["bits"]}}
     settings["prune"] = dict(point.get("prune") or {})
+    settings["sh"] = dict(point["sh"])  # the stage as coded, with a DC-only bar the controller chose
     document["points"] = {"chosen": settings}
     out.write_text(yaml.safe_dump(document, sort_keys=False))
     return out
