@@ -34,7 +34,6 @@ class Registry(Generic[T]):
         self.builtin = tuple(dict.fromkeys(self.modules.values())) if self.modules else tuple(builtin)
         self.error = error
         self._classes: dict[str, type[T]] = {}
-        self._imported: set[str] = set()
         self._loaded = False
 
     def register(self, cls: type[T]) -> type[T]:
@@ -48,7 +47,7 @@ class Registry(Generic[T]):
     def get(self, name: str) -> type[T]:
         """The class called ``name``; an error naming the known ones otherwise."""
         if isinstance(name, str) and name in self.modules:
-            self._import(self.modules[name])
+            importlib.import_module(f"{self.package}.{self.modules[name]}")
         else:
             self._load()
         if not isinstance(name, str) or name not in self._classes:
@@ -78,10 +77,5 @@ class Registry(Generic[T]):
         if self._loaded:
             return
         for module in self.builtin:
-            self._import(module)
-        self._loaded = True
-
-    def _import(self, module: str) -> None:
-        if module not in self._imported:
             importlib.import_module(f"{self.package}.{module}")
-            self._imported.add(module)
+        self._loaded = True
