@@ -48,6 +48,10 @@ EXIT_CODES = (
 DEBUG_ENV = "GSCODEC_DEBUG"
 
 
+#: Signals our handler turned into exceptions during this command (see :func:`_fail_for_signal`).
+_SIGNALS_RECEIVED: list[int] = []
+
+
 class Terminated(BaseException):
     """SIGTERM arrived (a BaseException, like KeyboardInterrupt, so no ``except Exception`` swallows it)."""
 
@@ -108,6 +112,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             sys.stdout.flush()
         return result
     except GscodecError as exc:
+        if _SIGNALS_RECEIVED:
+            return _fail_for_signal()
         if debug:
             raise
         return _fail(f"error: {exc}", exc.exit_code)
@@ -124,6 +130,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _fail("error: out of memory (set $GSCODEC_MAX_MEMORY below the free memory to be refused earlier)",
                      errors.EXIT_LIMIT)
     except Exception as exc:  # noqa: BLE001 - the one place a bug becomes one line
+        if _SIGNALS_RECEIVED:
+            return _fail_for_signal()
         if debug:
             raise
         return _fail(f"error: internal error ({type(exc).__name__}: {_first_line(exc)}); this is a bug, "
@@ -158,6 +166,14 @@ def _fail(message: str, code: int) -> int:
     return code
 
 
+def _fail_for_signal() -> int:
+    """The exit for a signal whose exception a C callback swallowed (numba's compiler does),
+    after which the code it interrupted failed with an error of its own."""
+    if _SIGNALS_RECEIVED[0] == signal.SIGINT:
+        return _fail("interrupted", errors.EXIT_INTERRUPTED)
+    return _fail("terminated", errors.EXIT_TERMINATED)
+
+
 def _silence_stdout() -> None:
     """After EPIPE: point stdout at /dev/null so the exit-time flush does not complain."""
     try:
@@ -181,16 +197,24 @@ def _signals_as_exceptions() -> Iterator[None]:
             signal.signal(signum, signal.SIG_DFL)
             os.kill(os.getpid(), signum)
             return
+        _SIGNALS_RECEIVED.append(signum)
         raise Interrupted() if signum == signal.SIGINT else Terminated()
+
+    def unraisable(info: "sys.UnraisableHookArgs") -> None:
+        if not isinstance(info.exc_value, (Interrupted, Terminated)):  # ours: main() reports it
+            previous_hook(info)
 
     try:
         previous = {signum: signal.signal(signum, handler) for signum in (signal.SIGINT, signal.SIGTERM)}
     except ValueError:  # not the main thread: leave signals alone
         yield
         return
+    previous_hook, sys.unraisablehook = sys.unraisablehook, unraisable
+    _SIGNALS_RECEIVED.clear()
     try:
         yield
     finally:
+        sys.unraisablehook = previous_hook
         for signum, old in previous.items():
             signal.signal(signum, old)
 

@@ -3,14 +3,18 @@ still working, positional outputs, one-line errors, progress bars off when not a
 the ``rate-points`` command."""
 
 import argparse
+import ctypes
 import io
 import json
+import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
+from gscodec_shac import cli as cli_module
 from gscodec_shac.cli import _parse_args, build_parser, main
 from gscodec_shac.codec.rate_points import builtin_rate_point_files, load_rate_point_file
 from gscodec_shac.commands import _options
@@ -255,3 +259,27 @@ def test_rate_points_mistakes_are_one_line(reference, message, capsys):
     assert main(["rate-points", reference]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and message in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("signum, status, line", [(signal.SIGINT, 130, "interrupted"),
+                                                  (signal.SIGTERM, 143, "terminated")])
+def test_a_signal_swallowed_by_a_c_callback_still_ends_the_command_as_that_signal(signum, status, line, monkeypatch,
+                                                                                  capfd):
+    """numba compiles through ctypes callbacks: a Ctrl-C there raises inside the callback, ctypes
+    prints and drops the exception, and the compiler then fails with an error of its own (seen in
+    CI: 'no compiled object yet', exit 70 and a traceback)."""
+
+    def command(args: argparse.Namespace) -> int:
+        @ctypes.CFUNCTYPE(None)
+        def callback() -> None:
+            os.kill(os.getpid(), signum)  # our handler raises here, inside the callback
+
+        callback()
+        raise RuntimeError("no compiled object yet")  # what the C library does next
+
+    real = cli_module.resolve_args
+    monkeypatch.setattr(cli_module, "resolve_args", lambda args: argparse.Namespace(**{**vars(real(args)),
+                                                                                       "func": command}))
+    assert main(["info", "any.gsc"]) == status
+    err = capfd.readouterr().err
+    assert err.strip() == line and "Traceback" not in err
