@@ -192,6 +192,29 @@ def test_hevc_frames_layout_is_exact_and_reproducible_on_narrow_grids(shape):
     np.testing.assert_array_equal(codec.decode(streams.pop(), shape, 10), planes)
 
 
+def _frame_types(codec, planes: np.ndarray) -> str:
+    """The picture types (I, P, B) of a ``frames``-layout stream, in display order."""
+    from av.video.frame import PictureType
+
+    from gscodec_shac.codec.grid.base import split_chunks
+    from gscodec_shac.codec.grid.hevc import _decoded_frames
+
+    (stream,) = split_chunks(codec.encode(planes, 10, 30)[2:], 1, "hevc")
+    return "".join(PictureType(frame.pict_type).name for frame in _decoded_frames(stream, 0))
+
+
+def test_hevc_frames_layout_fixes_the_frame_types():
+    """x265's adaptive B frames and weighted P frames now and then wrote other bytes for the same
+    input (docs/reliability.md): the layout codes P frames, or B frames at fixed places whatever
+    the content, with no weighted prediction."""
+    rng = np.random.default_rng(5)
+    smooth = smooth_planes((7, 64, 96), 10)
+    noise = rng.integers(0, 1024, smooth.shape).astype(np.uint16)
+    assert _frame_types(get_codec("hevc", layout="frames"), smooth) == "IPPPPPP"
+    with_b = get_codec("hevc", layout="frames", bframes=2)
+    assert _frame_types(with_b, smooth) == _frame_types(with_b, noise) and "B" in _frame_types(with_b, smooth)
+
+
 def test_hevc_shifts_narrow_data_to_the_coding_depth():
     planes = smooth_planes(SHAPE, 8)
     codec = get_codec("hevc", depth=10)

@@ -10,7 +10,13 @@ elementary streams (:func:`~gscodec_shac.codec.grid.base.join_chunks`):
   last one or two channels are coded as ``gray`` streams;
 * ``frames``: one 4:0:0 stream whose C frames are the C channels, so inter
   prediction can exploit their correlation (one I frame, ``keyint=C``,
-  ``scenecut=0``; B frames as the preset sets them unless ``bframes`` is given).
+  ``scenecut=0``; P frames only unless ``bframes`` is given, at fixed places:
+  ``b-adapt=0``; no weighted prediction: ``weightp=0``). With the presets' adaptive
+  B frames or weighted P frames x265 now and then wrote other bytes for the same
+  input in a worker that had coded other streams before (docs/reliability.md,
+  "x265 run-to-run differences"); with these settings it never did in the loops
+  measured there, and the attribute channels take 0.3-0.8% fewer bytes at the same
+  QP than with the preset's B frames (bonsai, chair).
 
 Every stream uses ``qp=Q:ipratio=1:pbratio=1`` (all frames at exactly QP Q; without
 ``ipratio=1`` x265 codes an intra frame ~3 QP finer), ``info=0`` (no 2 KB settings
@@ -34,6 +40,7 @@ import fractions
 import functools
 import os
 import re
+import reprlib
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Iterator
@@ -62,7 +69,8 @@ class HevcCodec(GridCodec):
     in BD-rate), ``tune`` (x265 tune or ``None``; default ``"psnr"``, 3-12% smaller
     than no tune at equal PSNR on attribute grids: docs/benchmarks_codecs.md),
     ``depth`` (8, 10, 12 or ``None`` = smallest holding the data), ``bframes``
-    (``frames`` layout only; ``None`` = the preset's) and ``threads`` (x265
+    (``frames`` layout only: B frames between P frames, at fixed places; default 0;
+    ``None`` = the preset's count) and ``threads`` (x265
     worker threads; ``None`` = all cores; the bytes do not depend on it).
     """
 
@@ -74,21 +82,21 @@ class HevcCodec(GridCodec):
         preset: str = "slow",
         tune: str | None = "psnr",
         depth: int | None = None,
-        bframes: int | None = None,
+        bframes: int | None = 0,
         threads: int | None = None,
     ) -> None:
         if layout not in LAYOUTS:
-            raise ValidationError(f"hevc: layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
+            raise ValidationError(f"hevc: layout must be one of {', '.join(LAYOUTS)}, got {reprlib.repr(layout)}")
         if preset not in PRESETS:
-            raise ValidationError(f"hevc: preset must be one of {', '.join(PRESETS)}, got {preset!r}")
+            raise ValidationError(f"hevc: preset must be one of {', '.join(PRESETS)}, got {reprlib.repr(preset)}")
         if tune is not None and tune not in TUNES:
-            raise ValidationError(f"hevc: tune must be None or one of {', '.join(TUNES)}, got {tune!r}")
+            raise ValidationError(f"hevc: tune must be None or one of {', '.join(TUNES)}, got {reprlib.repr(tune)}")
         if depth is not None and depth not in _GRAY_FMT:
-            raise ValidationError(f"hevc: depth must be 8, 10, 12 or None, got {depth!r}")
+            raise ValidationError(f"hevc: depth must be 8, 10, 12 or None, got {reprlib.repr(depth)}")
         if bframes is not None and not (isinstance(bframes, int) and 0 <= bframes <= 16):
-            raise ValidationError(f"hevc: bframes must be an integer 0-16 or None, got {bframes!r}")
+            raise ValidationError(f"hevc: bframes must be an integer 0-16 or None, got {reprlib.repr(bframes)}")
         if threads is not None and not (isinstance(threads, int) and threads >= 1):
-            raise ValidationError(f"hevc: threads must be a positive integer or None, got {threads!r}")
+            raise ValidationError(f"hevc: threads must be a positive integer or None, got {reprlib.repr(threads)}")
         super().__init__(layout=layout, preset=preset, tune=tune, depth=depth, bframes=bframes, threads=threads)
         self.layout, self.preset, self.tune = layout, preset, tune
         self.depth, self.bframes, self.threads = depth, bframes, threads
@@ -123,8 +131,8 @@ class HevcCodec(GridCodec):
                 frames, pix_fmt, gop = [grid[first : first + 3]], _YUV444_FMT[depth], ""
             else:
                 frames, pix_fmt, gop = list(grid[first : first + n_frames]), _GRAY_FMT[depth], ""
-                if n_frames > 1:  # the frames layout: one I frame, then inter frames
-                    gop = f":keyint={n_frames}:min-keyint={n_frames}:scenecut=0"
+                if n_frames > 1:  # the frames layout: one I frame, then inter frames of fixed types
+                    gop = f":keyint={n_frames}:min-keyint={n_frames}:scenecut=0:b-adapt=0:weightp=0"
                     gop += f":bframes={self.bframes}" if self.bframes is not None else ""
             parts.append((sum(f.size for f in frames), functools.partial(self._encode_stream, frames, pix_fmt, qp, gop)))
         head = bytes([LAYOUTS.index(self.layout), shift])
