@@ -101,6 +101,10 @@ CALIBRATION_WIDTH = 192
 SIZE_TOLERANCE = 0.03
 #: ... a PSNR target when the measured PSNR is within this many dB above it.
 PSNR_WINDOW = 0.3
+#: Bounds of the slope of measured against predicted PSNR between the encodes on either side of
+#: a PSNR target's window, and the spread of predictions (dB) it needs (:meth:`RateController._next_for_quality`).
+PSNR_SLOPES = (0.25, 1.5)
+PSNR_SLOPE_SPREAD = 0.1
 
 
 class TargetUnreachableError(GscodecError):
@@ -731,7 +735,7 @@ class RateController:
                 measured_plans.append((plan, size, measured))
                 if measured >= target.value and (best is None or size < best[0].total_bytes()):
                     best = (stream, plan, measured)
-                if target.value <= measured <= target.value + PSNR_WINDOW:
+                if best is not None and best[2] <= target.value + PSNR_WINDOW:  # the smallest file that meets it lands
                     plan = None
                 else:
                     plan = self._next_for_quality(target, measured_plans, tried)
@@ -774,27 +778,39 @@ class RateController:
 
     def _next_for_quality(self, target: Target, measured: Sequence[tuple[Plan, int, float]],
                           tried: set[tuple]) -> Plan | None:
-        """The next plan for a PSNR target: on the hull of the QPs (position bits and pruning of the first
-        encode), between the largest encode below the target and the smallest one above its window,
-        the smallest whose corrected PSNR reaches the window's middle (else the best one); None when no
-        untried plan lies between them."""
-        low = max((size for _, size, psnr in measured if psnr < target.value), default=-math.inf)
-        high = min((size for _, size, psnr in measured if psnr > target.value + PSNR_WINDOW), default=math.inf)
-        first = measured[0][0].settings
-        plans = self._hull(prune=first.get("prune", 0), positions=first["positions"], dc_only=first.get("dc_only", 0))
-        for plan, size, psnr in measured:  # single QP steps from the bracket's ends into it
-            if size == low or size == high:
-                plans += self._chain(plan, cheaper=size == high, stop=low if size == high else high)
-                plans += self._single_steps(plan)
-        candidates = [(p.predicted_bytes, self._corrected_psnr(p, measured), p) for p in plans
-                      if low < p.predicted_bytes < high and _key(p) not in tried]
-        if not candidates:
+        """The next plan for a PSNR target: a regula falsi along one chain of single QP steps.
+
+        The chain starts at the smallest measured file above the window (or, when every encode fell
+        short, at the encode nearest the target from below) and walks :meth:`_step` by :meth:`_step` towards the other side. Along
+        it the PSNR is estimated from the start's measured PSNR and the models' change, scaled by the
+        slope between the two encodes nearest the window on either side (1 until both exist): the
+        plans along one chain differ from its start by single steps that all lower (or raise) the
+        quality, where the rendered PSNR follows the models far better than between two plans of
+        other QP mixes (two plans of about the same size can differ by 0.3 dB, the window's width).
+        The cheapest untried plan estimated to reach the window's middle is next; None when the
+        chain holds no untried plan."""
+        top, aim = target.value + PSNR_WINDOW, target.value + PSNR_WINDOW / 2
+        above = [(psnr, plan, size) for plan, size, psnr in measured if psnr > top]
+        below = [(psnr, plan, size) for plan, size, psnr in measured if psnr < target.value]
+        cheaper = bool(above)
+        start_psnr, start, _ = min(above, key=lambda r: r[2]) if cheaper else max(below, key=lambda r: r[0])
+        other = (max(below, key=lambda r: r[0]) if below else None) if cheaper else \
+            (min(above, key=lambda r: r[0]) if above else None)
+        slope = 1.0
+        if other is not None and abs(start.predicted_psnr - other[1].predicted_psnr) >= PSNR_SLOPE_SPREAD:
+            slope = (start_psnr - other[0]) / (start.predicted_psnr - other[1].predicted_psnr)
+            slope = min(max(slope, PSNR_SLOPES[0]), PSNR_SLOPES[1])
+        stop = other[2] if other is not None else (0.0 if cheaper else math.inf)
+        moves = self._chain(start, cheaper=cheaper, stop=stop) + [  # and every single step from the start
+            p for p in self._single_steps(start) if (p.predicted_bytes < start.predicted_bytes) == cheaper]
+        moves = [p for p in moves if _key(p) not in tried]
+        if not moves:
             return None
-        aim = target.value + PSNR_WINDOW / 2
-        reaching = [c for c in candidates if c[1] >= aim]
+        estimate = {id(p): start_psnr + slope * (p.predicted_psnr - start.predicted_psnr) for p in moves}
+        reaching = [p for p in moves if estimate[id(p)] >= aim]
         if reaching:
-            return min(reaching, key=lambda c: (c[0], -c[1]))[2]
-        return max(candidates, key=lambda c: (c[1], -c[0]))[2]
+            return min(reaching, key=lambda p: (p.predicted_bytes, -estimate[id(p)]))
+        return max(moves, key=lambda p: (estimate[id(p)], -p.predicted_bytes))
 
     def _single_steps(self, plan: Plan) -> list[Plan]:
         """Every plan one QP step of one attribute away from ``plan``: the finest moves between two
