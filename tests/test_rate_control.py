@@ -177,37 +177,6 @@ def test_calibration_renders_from_one_frame_are_those_of_fresh_renders(controlle
         assert controller.rendered_mse_[name] == controller._rendered_mse(_with_decoded(cloud, name, rows, decoded)) > 0
 
 
-def test_renders_beside_the_probe_are_those_of_renders_after_it(controller, small_scene):
-    """The fit renders the positions' sensitivity in a thread beside the probe's encodes: the value of a
-    render of the moved cloud in the main thread after the fit; the probe's own sensitivities too."""
-    from gscodec_shac.codec.rate_control import _position_step_mse, _quantised_positions, _with_decoded
-
-    cloud = small_scene.cloud
-    moved = controller._rendered_mse(_quantised_positions(cloud, 12))
-    assert controller.position_sensitivity_ == moved / _position_step_mse(cloud, 12) > 0
-    rows, decoded = controller._probe_decoded
-    for name in ("opacity", "rotation", "scale"):
-        assert controller.rendered_mse_[name] == controller._rendered_mse(_with_decoded(cloud, name, rows, decoded))
-
-
-def test_probe_encodes_on_one_thread_give_the_bytes_of_an_encode_on_all(controller, small_cloud):
-    """The probe's encodes run with BLAS and numba on one thread (beside the render threads): the same bytes
-    as on all threads, and the thread counts are restored afterwards."""
-    import numba
-    from threadpoolctl import threadpool_info
-
-    from gscodec_shac.codec.rate_control import _on_one_thread
-
-    point = controller._rate_point({"opacity": 20, "rotation": 20, "scale": 20, "sh_dc": 20, "sh": 20,
-                                    "positions": 16})
-    threads = numba.get_num_threads(), [pool["num_threads"] for pool in threadpool_info()]
-    with _on_one_thread():
-        assert numba.get_num_threads() == 1
-        one = Encoder(point, sh_stage=controller.stage_, fit_stage=False).encode(small_cloud).to_bytes()
-    assert (numba.get_num_threads(), [pool["num_threads"] for pool in threadpool_info()]) == threads
-    assert one == Encoder(point, sh_stage=controller.stage_, fit_stage=False).encode(small_cloud).to_bytes()
-
-
 def test_without_importance_shares_only_opacity_thresholds_are_candidates(small_scene):
     bare = RateController(small_scene.cloud, views=small_scene.cameras, importance_shares=())
     assert all(prune["keep_share"] == 1.0 for prune, _ in bare._prune_candidates())

@@ -48,13 +48,11 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from contextlib import contextmanager
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Sequence
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
 from gscodec_shac.camera import Camera, orbit_views, spread_views
@@ -266,8 +264,6 @@ class RateController:
         self._cache: dict = {}
         self._references: list[np.ndarray] = []
         self._covariances: np.ndarray | None = None  # the cloud's 3D covariances (for renders of its variants)
-        self._zeroed_mse: dict[tuple[float, int], float] = {}  # rendered MSE of each DC-only zeroing (_render_cloud)
-        self.position_sensitivity_: float = 0.0  # rendered MSE per unit position MSE (_render_cloud)
         self._exact: dict[str, dict[int, float]] = {}
         self._probe_decoded: tuple[np.ndarray, GaussianCloud] | None = None  # (rows, decoded) at SENSITIVITY_QP
         self._sh_points: dict[int, dict[int, float]] = {}  # SH feature (-1: side information) -> {QP: bytes}
@@ -276,44 +272,34 @@ class RateController:
 
     # -------------------------------------------------------------- fit
     def fit(self) -> "RateController":
-        """Measure the per-attribute models (probe encodes, position bits, render sensitivities).
-
-        Two threads beside the main one: the exact position bits (LZMA and sorts, which release the
-        GIL) and the renders that need no probe (:meth:`_render_cloud`: importance, references,
-        pruning candidates, DC-only zeroings, positions), while the main thread fits the SH stage
-        and encodes the probe. Each result is what the same work gives run one after the other."""
+        """Measure the per-attribute models (probe encodes, position bits, render sensitivities)."""
         tic = time.perf_counter()
         cloud = self.cloud
-        stage = make_stage(self.template.sh_stage, **self.template.sh_params) if cloud.sh_degree > 0 else None
-        names = [a for a in QP_ATTRIBUTES if a != "sh" or stage is not None]
-        probes = len(PROBE_QPS)
-        renders = 1 + len(names) + 1 + len(PRUNE_THRESHOLDS) - 1 + len(self.importance_shares) \
-            + (len(DC_ONLY_BARS) - 1)  # references, perturbed attributes, positions, pruning, DC-only bars
-        with ThreadPoolExecutor(self.workers or default_workers()) as pool, ThreadPoolExecutor(1) as render_pool, \
-                tqdm(total=probes + renders, desc="rate control: calibrate", unit="step", disable=not self.progress,
-                     leave=False) as bar:
+        # the exact position bits (LZMA and sorts, which release the GIL) are coded beside the probe
+        with ThreadPoolExecutor(self.workers or default_workers()) as pool:
             coded = _position_set_jobs(pool, cloud)
-            if stage is not None:
+            if cloud.sh_degree > 0:
+                stage = make_stage(self.template.sh_stage, **self.template.sh_params)
                 ac = cloud.ac_matrix()
                 self.stage_ = stage.fit(np.concatenate([cloud.sh_dc, ac], axis=1) if stage.uses_dc else ac)
-                ac = None
-            unprobed = render_pool.submit(self._render_cloud, self._dc_only_applies(names, stage), bar)
-            sh_values = self._sh_values()  # the whole cloud's SH features, once: the probe's extremes, ranges
-            sh_ranges = None if sh_values is None else np.ptp(sh_values, axis=0)
-            rows = _probe_rows(cloud)
-            if rows.size < cloud.num_gaussians:
-                rows = np.union1d(rows, _extreme_rows(cloud, sh_values))
-            sh_values = None
-            rates, encodes, overhead = self._probe(rows, bar)
-            self.seconds_["probe"] = time.perf_counter() - tic  # with the SH stage's fit, beside the renders
-            self.dc_only_ = self._fit_dc_only(rows, rates, unprobed.result, bar)
-            unprobed.result()
-            tic = time.perf_counter()
-            # the decodes after the renders: their values depend on the BLAS threads, which stay as they are
-            errors = self._probe_errors(rows, encodes)
-            encodes = None
-            sensitivity = self._calibrate(errors, bar)
-            self.seconds_["calibrate"] = time.perf_counter() - tic
+            probes = len(PROBE_QPS)
+            attributes = len(QP_ATTRIBUTES) - (0 if self.stage_ is not None else 1)
+            renders = 1 + attributes + 1 + len(PRUNE_THRESHOLDS) - 1 + len(self.importance_shares) \
+                + (len(DC_ONLY_BARS) - 1)  # references, perturbed attributes, positions, pruning, DC-only bars
+            with tqdm(total=probes + renders, desc="rate control: calibrate", unit="step", disable=not self.progress,
+                      leave=False) as bar:
+                sh_values = self._sh_values()  # the whole cloud's SH features, once: the probe's extremes, ranges
+                sh_ranges = None if sh_values is None else np.ptp(sh_values, axis=0)
+                rows = _probe_rows(cloud)
+                if rows.size < cloud.num_gaussians:
+                    rows = np.union1d(rows, _extreme_rows(cloud, sh_values))
+                sh_values = None
+                rates, errors, overhead = self._probe(rows, bar)
+                self.seconds_["probe"] = time.perf_counter() - tic
+                tic = time.perf_counter()
+                sensitivity = self._calibrate(errors, bar)
+                self.dc_only_ = self._fit_dc_only(rows, rates, bar)
+                self.seconds_["calibrate"] = time.perf_counter() - tic
             self.models_["positions"] = self._position_model(coded, sensitivity["positions"])
         grid = np.arange(0, 52)
         for name in rates:
@@ -344,61 +330,21 @@ class RateController:
                 out.append((_prune(keep_share=share), keep))
         return out
 
-    def _render_cloud(self, zeroing: bool, bar: Any = None) -> None:
-        """The calibration renders that need no probe, against renders of the uncompressed cloud
-        (:attr:`_references`): the pruning candidates' rendered MSE (:attr:`prune_`), that of the DC-only
-        bars' zeroings (``zeroing``: whether the bars are a choice; :meth:`_zeroings`) and the positions'
-        render sensitivity (:attr:`position_sensitivity_`).
+    def _calibrate(self, errors: dict[str, np.ndarray], bar: Any = None) -> dict[str, float]:
+        """The render sensitivities (:meth:`_sensitivities`) and the pruning candidates' rendered MSE
+        (:attr:`prune_`), against renders of the uncompressed cloud (:attr:`_references`).
 
-        The pruned subsets, with or without the bars' AC zeroed, keep every Gaussian's geometry: they
-        are rendered view by view from one prepared frame of the cloud
-        (:class:`~gscodec_shac.render.variants.FrameVariants`: only the per-pixel blend runs again, the
-        images are those of fresh renders)."""
+        The variants that keep every Gaussian's geometry, the pruned subsets, the clouds with the
+        probe's DC or SH features as decoded and the pruned subsets with the DC-only bars' AC
+        zeroed (:meth:`_zeroings`), are rendered view by view from one prepared frame of
+        the cloud (:class:`~gscodec_shac.render.variants.FrameVariants`: only the per-pixel blend runs
+        again, the images are those of fresh renders); the others by renders of their own."""
         from gscodec_shac.render import Renderer
         from gscodec_shac.render.variants import FrameVariants
 
-        tic = time.perf_counter()
         renderer = Renderer(self.cloud)
         self._covariances = renderer.cov3
         candidates = self._prune_candidates(renderer)
-        zeroings = self._zeroings(candidates, zeroing)
-        no_ac = np.zeros((max((z.size for _, z in zeroings.values()), default=0), *self.cloud.sh_rest.shape[1:]),
-                         dtype=self.cloud.sh_rest.dtype)
-        references = []
-        per_view: dict[Any, list] = {key: [] for key in [*range(len(candidates)), *zeroings]}
-        for view in self.views:
-            frame = FrameVariants(renderer, view, self.background)
-            reference = frame.image()
-            references.append(reference)
-            for index, (_, keep) in enumerate(candidates):
-                per_view[index].append(np.mean((frame.subset(keep) - reference) ** 2))
-            for key, (keep, zero) in zeroings.items():
-                image = frame.variant(keep=keep, rows=zero, sh_dc=self.cloud.sh_dc[zero], sh_rest=no_ac[:zero.size])
-                per_view[key].append(np.mean((image - reference) ** 2))
-        renderer = frame = no_ac = None
-        self._references = references
-        self._zeroed_mse = {key: float(np.mean(per_view[key])) for key in zeroings}
-        n = self.cloud.num_gaussians
-        self.prune_ = [(_prune(), 1.0, 0.0)] + [
-            (settings, int(np.count_nonzero(keep)) / n, float(np.mean(per_view[i])))
-            for i, (settings, keep) in enumerate(candidates)]
-        if bar is not None:
-            bar.update(1 + len(PRUNE_THRESHOLDS) - 1 + len(self.importance_shares))
-        bits = 12
-        moved = _quantised_positions(self.cloud, bits)
-        self.position_sensitivity_ = self._rendered_mse(moved, slice(None)) / _position_step_mse(self.cloud, bits)
-        if bar is not None:
-            bar.update(1)
-        self.seconds_["renders"] = time.perf_counter() - tic
-
-
-    def _calibrate(self, errors: dict[str, np.ndarray], bar: Any = None) -> dict[str, float]:
-        """The render sensitivities (:meth:`_sensitivities`) after :meth:`_render_cloud`: the clouds with
-        the probe's DC or SH features as decoded are rendered view by view from one prepared frame of the
-        cloud (:class:`~gscodec_shac.render.variants.FrameVariants`), the others by renders of their own."""
-        from gscodec_shac.render import Renderer
-        from gscodec_shac.render.variants import FrameVariants
-
         rows, decoded = self._probe_decoded
         probe = self.cloud.select(rows)
         recolours, variant = {}, None
@@ -407,29 +353,44 @@ class RateController:
                 variant = _with_decoded(probe, name, np.arange(rows.size), decoded)
                 recolours[name] = (variant.sh_dc, variant.sh_rest)
         probe = variant = None
-        per_view: dict[str, list] = {name: [] for name in recolours}
-        if recolours:
-            renderer = Renderer(self.cloud, covariances=self._covariances)
-            for view, reference in zip(self.views, self._references):
-                frame = FrameVariants(renderer, view, self.background)
-                for name, (sh_dc, sh_rest) in recolours.items():
-                    per_view[name].append(np.mean((frame.recoloured(rows, sh_dc, sh_rest) - reference) ** 2))
-            renderer = frame = None
+        zeroings = self._zeroings(candidates, errors)
+        no_ac = np.zeros((max((z.size for _, z in zeroings.values()), default=0), *self.cloud.sh_rest.shape[1:]),
+                         dtype=self.cloud.sh_rest.dtype)
+        self._references = []
+        per_view: dict[Any, list] = {key: [] for key in [*recolours, *range(len(candidates)), *zeroings]}
+        for view in self.views:
+            frame = FrameVariants(renderer, view, self.background)
+            reference = frame.image()
+            self._references.append(reference)
+            for name, (sh_dc, sh_rest) in recolours.items():
+                per_view[name].append(np.mean((frame.recoloured(rows, sh_dc, sh_rest) - reference) ** 2))
+            for index, (_, keep) in enumerate(candidates):
+                per_view[index].append(np.mean((frame.subset(keep) - reference) ** 2))
+            for key, (keep, zero) in zeroings.items():
+                image = frame.variant(keep=keep, rows=zero, sh_dc=self.cloud.sh_dc[zero], sh_rest=no_ac[:zero.size])
+                per_view[key].append(np.mean((image - reference) ** 2))
+        renderer = frame = no_ac = None
+        self._zeroed_mse = {key: float(np.mean(per_view[key])) for key in zeroings}
+        if bar is not None:
+            bar.update(1 + len(PRUNE_THRESHOLDS) - 1 + len(self.importance_shares))
+        n = self.cloud.num_gaussians
+        self.prune_ = [(_prune(), 1.0, 0.0)] + [
+            (settings, int(np.count_nonzero(keep)) / n, float(np.mean(per_view[i])))
+            for i, (settings, keep) in enumerate(candidates)]
         self.rendered_mse_ = {name: float(np.mean(per_view[name])) for name in recolours}
         return self._sensitivities(errors, self.rendered_mse_, bar)
 
-    def _dc_only_applies(self, names: Any, stage: ShStage | None = None) -> bool:
-        """Whether the DC-only bars are a choice: an SH attribute among ``names`` whose stage (``stage``, else
-        :attr:`stage_`) codes the DC apart, and a template that does not set its own DC-only Gaussians."""
-        stage = stage if stage is not None else self.stage_
-        return "sh" in names and stage is not None and not stage.uses_dc and not self.template.dc_only
+    def _dc_only_applies(self, names: Any) -> bool:
+        """Whether the DC-only bars are a choice: an SH attribute among ``names`` whose stage codes the DC
+        apart, and a template that does not set its own DC-only Gaussians."""
+        return "sh" in names and self.stage_ is not None and not self.stage_.uses_dc and not self.template.dc_only
 
     def _zeroings(self, candidates: list[tuple[dict[str, float], np.ndarray]],
-                  applies: bool) -> dict[tuple[float, int], tuple[np.ndarray | None, np.ndarray]]:
+                  names: Any) -> dict[tuple[float, int], tuple[np.ndarray | None, np.ndarray]]:
         """Per DC-only bar and pruning choice (0: none, ``i + 1``: ``candidates[i]``), the Gaussians kept
         (a mask, None for all) and those of them the bar leaves DC-only, flagged among the kept ones
-        (:func:`.rate_sh_degree.kept_flags`); empty when the bars are no choice (not ``applies``)."""
-        if not applies:
+        (:func:`.rate_sh_degree.kept_flags`); empty when the bars are no choice."""
+        if not self._dc_only_applies(names):
             return {}
         energy = cloud_energy(self.cloud)
         kept = [None] + [keep for _, keep in candidates]
@@ -437,12 +398,10 @@ class RateController:
         return {(value, j): (keep, kept_flags(energy, everything if keep is None else np.flatnonzero(keep), value))
                 for value in DC_ONLY_BARS if value > 0 for j, keep in enumerate(kept)}
 
-    def _fit_dc_only(self, rows: np.ndarray, rates: dict[str, np.ndarray], rendered: Callable[[], Any],
-                     bar: Any = None) -> list[DcOnlyChoice]:
+    def _fit_dc_only(self, rows: np.ndarray, rates: dict[str, np.ndarray], bar: Any = None) -> list[DcOnlyChoice]:
         """The DC-only energy bars to choose between, measured (:func:`.rate_sh_degree.fit_choices`) on
-        the probe of ``rows``, with the zeroing errors rendered by :meth:`_render_cloud` (``rendered``
-        waits for them; the bars' probe encodes run first); bar 0 alone when they are no choice
-        (:meth:`_dc_only_applies`)."""
+        the probe of ``rows``, with the zeroing errors rendered by :meth:`_calibrate`; bar 0 alone when
+        they are no choice (:meth:`_dc_only_applies`)."""
         if not self._dc_only_applies(rates):
             return [DcOnlyChoice(0.0)]
         probe = self.cloud.select(rows)
@@ -450,13 +409,11 @@ class RateController:
 
         def encode_probe(value: float, qp: int) -> float:
             point = self._rate_point({a: qp for a in rates} | {"positions": 16}).with_overrides(dc_only_energy=value)
-            with _on_one_thread():
-                sizes = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers).encode(probe) \
-                    .attribute_sizes()
+            sizes = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers).encode(probe) \
+                .attribute_sizes()
             return scale * sizes.get("sh", 0) + sizes.get("sh_state", 0)
 
         def zeroing_errors(value: float) -> tuple[float, ...]:
-            rendered()
             return tuple(max(self._zeroed_mse[(value, j)] - prune_mse, 0.0)
                          for j, (_, _, prune_mse) in enumerate(self.prune_))
 
@@ -476,51 +433,34 @@ class RateController:
                                           sh.mse)
         return models
 
-    def _probe(self, rows: np.ndarray, bar: Any = None) -> tuple[dict[str, np.ndarray], list[tuple], float]:
-        """Per attribute, bytes (scaled to the whole cloud) at each probe QP of the probe made of ``rows``,
-        the encodes (QP, rate point, grid order, stream) for :meth:`_probe_errors`, and the header's bytes
-        (``bar``: a progress bar advanced once per probe)."""
+    def _probe(self, rows: np.ndarray, bar: Any = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
+        """Per attribute, bytes (scaled to the whole cloud) and attribute MSE at each probe QP of the
+        probe made of ``rows`` (``bar``: a progress bar advanced once per probe)."""
         self._sh_points = {}
         probe = self.cloud.select(rows)
         scale = self.cloud.num_gaussians / probe.num_gaussians
-        names = self._names()
+        names = [a for a in QP_ATTRIBUTES if a != "sh" or self.stage_ is not None]
         rates = {a: np.zeros(len(PROBE_QPS)) for a in names}
-        encodes = []
+        errors = {a: np.zeros(len(PROBE_QPS)) for a in names}
         overhead = 0.0
         for i, qp in enumerate(PROBE_QPS):
             point = self._rate_point({a: qp for a in names} | {"positions": 16})
             encoder = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers)
-            with _on_one_thread():
-                stream = encoder.encode(probe)
-            encodes.append((qp, point, encoder.order_, stream))
+            stream = encoder.encode(probe)
+            decoded = Decoder(workers=self.workers).decode(stream.to_bytes())
+            source = probe.select(encoder.order_)
             sizes = stream.attribute_sizes()
             for a in names:
                 rates[a][i] = scale * sizes.get(a, 0) + (sizes.get("sh_state", 0) if a == "sh" else 0)
+                errors[a][i] = _attribute_mse(a, source, decoded, point.color == "ycbcr")
+            if qp == SENSITIVITY_QP:
+                self._probe_decoded = (rows[encoder.order_], decoded)
             if "sh" in names and self._waterfilled:
                 self._record_sh_chunks(stream, scale)
             overhead = max(overhead, sizes.get("header", 0))
             if bar is not None:
                 bar.update(1)
-        return rates, encodes, overhead
-
-    def _probe_errors(self, rows: np.ndarray, encodes: list[tuple]) -> dict[str, np.ndarray]:
-        """Per attribute, the MSE of the probe made of ``rows`` as decoded from each of its ``encodes``
-        (:meth:`_probe`); keeps the decode at :data:`SENSITIVITY_QP` for the render sensitivities."""
-        probe = self.cloud.select(rows)
-        names = self._names()
-        errors = {a: np.zeros(len(PROBE_QPS)) for a in names}
-        for i, (qp, point, order, stream) in enumerate(encodes):
-            decoded = Decoder(workers=self.workers).decode(stream.to_bytes())
-            source = probe.select(order)
-            for a in names:
-                errors[a][i] = _attribute_mse(a, source, decoded, point.color == "ycbcr")
-            if qp == SENSITIVITY_QP:
-                self._probe_decoded = (rows[order], decoded)
-        return errors
-
-    def _names(self) -> list[str]:
-        """The QP attributes the controller sets (``sh`` only with an SH stage)."""
-        return [a for a in QP_ATTRIBUTES if a != "sh" or self.stage_ is not None]
+        return rates, errors, overhead
 
     @property
     def _waterfilled(self) -> bool:
@@ -595,7 +535,12 @@ class RateController:
             out[name] = rendered[name] / error
             if bar is not None:
                 bar.update(1)
-        out["positions"] = self.position_sensitivity_  # rendered by :meth:`_render_cloud`
+        bits = 12
+        moved = _quantised_positions(self.cloud, bits)
+        step_mse = _position_step_mse(self.cloud, bits)
+        out["positions"] = self._rendered_mse(moved, slice(None)) / step_mse
+        if bar is not None:
+            bar.update(1)
         return out
 
     def _position_model(self, coded: dict[int, Future], sensitivity: float) -> AttributeModel:
@@ -921,24 +866,6 @@ class RateController:
 
 
 # ------------------------------------------------------------------ helpers
-@contextmanager
-def _on_one_thread() -> Iterator[None]:
-    """BLAS and this thread's numba kernels on one thread: for the probe's encodes, which run beside the
-    calibration's render threads (the sort's many short parallel regions wait at every barrier for a
-    thread the renders hold the core of, and OpenBLAS's idle threads spin between calls). An encode's
-    bytes do not depend on either (its SH stage runs on one BLAS thread anyway; tests/test_speed_paths.py);
-    a decode's values do depend on the BLAS threads (the inverse transform), so decodes run without."""
-    import numba
-
-    threads = numba.get_num_threads()
-    numba.set_num_threads(1)  # this thread's (numba's thread count is per thread)
-    try:
-        with threadpool_limits(1, user_api="blas"):
-            yield
-    finally:
-        numba.set_num_threads(threads)
-
-
 def _model_sizes(stream: Bitstream) -> dict[str, int]:
     """Bytes per modelled attribute; the SH stage's side information counts with the SH features
     (water-filling sets how many components it stores)."""

@@ -43,7 +43,7 @@ class TileBins:
         return int(self.ids.shape[0])
 
 
-@numba.njit(cache=True, parallel=True, nogil=True)
+@numba.njit(cache=True, parallel=True)
 def _gather_kernel(keys, pack_in, rects_in, order, pack, rects):  # pragma: no cover - compiled
     width = pack_in.shape[1]
     for k in numba.prange(order.shape[0]):
@@ -108,7 +108,7 @@ def _tile_rows(pack, rects, k, height):  # pragma: no cover - compiled
     return max(rects[k, 1], row_lo // BLOCK), min(rects[k, 3] - 1, row_hi // BLOCK)
 
 
-@numba.njit(cache=True, parallel=True, nogil=True)
+@numba.njit(cache=True, parallel=True)
 def _bin_kernel(pack, rects, width, height, tiles_x, tiles_y, n_chunks, touched):  # pragma: no cover - compiled
     n = pack.shape[0]
     n_tiles = tiles_x * tiles_y

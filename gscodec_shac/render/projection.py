@@ -129,7 +129,7 @@ class Projection:
         return Projection(*(np.array(getattr(self, k)) for k in ("means2d", "conics", "depths", "radii", "rects")))
 
 
-@numba.njit(cache=True, parallel=True, nogil=True)
+@numba.njit(cache=True, parallel=True)
 def _project_kernel(
     means, cov3, opacity, tau, R, t, fx, fy, cx, cy, width, height, lx_neg, lx_pos, ly_neg, ly_pos,
     pack, rects, radii, keys,

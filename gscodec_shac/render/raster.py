@@ -63,7 +63,7 @@ ALPHA_MAX = 0.99
 T_MIN = 1e-4
 
 
-@numba.njit(cache=True, parallel=True, nogil=True)
+@numba.njit(cache=True, parallel=True)
 def _raster_kernel(
     mode, tile_start, ids, pack, order, width, height, tiles_x, tile_order,
     color_out, t_out, depth_out, last_out, count_out, indptr, w_cols, w_vals,

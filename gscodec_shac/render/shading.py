@@ -62,7 +62,7 @@ def _basis(x, y, z, degree, c2, c3, c4, out):  # pragma: no cover - compiled
 _CHUNK = 1024
 
 
-@numba.njit(cache=True, parallel=True, nogil=True)
+@numba.njit(cache=True, parallel=True)
 def _colors_kernel(means, sh_dc, sh_rest, center, mask, c2, c3, c4, out, col0):  # pragma: no cover - compiled
     n = means.shape[0]
     n_rest = sh_rest.shape[1]
