@@ -318,3 +318,24 @@ def test_variants_from_one_prepared_frame_render_as_a_fresh_renderer():
             both = frame.variant(keep=mask, rows=rows, sh_dc=sh_dc, sh_rest=sh_rest)  # recoloured, then pruned
             assert np.array_equal(both, render(recoloured.select(keep), camera, background=background).image)
             assert not np.array_equal(both, pruned)
+
+
+def test_blend_chunks_of_any_size_give_the_same_pixels(monkeypatch):
+    """The blend hands tiles to threads in chunks (few tiles per chunk on a small image, so both threads
+    stay busy): each tile is blended alone, so the image, the weights and the importance totals are the
+    same with chunks of 1, 3 and 8 tiles."""
+    from gscodec_shac.render import raster
+
+    assert raster.tile_chunk(108, 2) == 1 and raster.tile_chunk(300, 2) == 4 and raster.tile_chunk(8160, 2) == 8
+    cloud = random_cloud(np.random.default_rng(5), 600, 3)
+    camera = look_at("wide", np.array([0.2, -3.0, 0.6]), np.zeros(3), np.array([0.0, 0.0, 1.0]), 160, 112, 50.0)
+    outputs = []
+    for chunk in (1, 3, 8):
+        monkeypatch.setattr(raster, "tile_chunk", lambda n_tiles, threads, chunk=chunk: chunk)
+        renderer = Renderer(cloud)
+        weights, trans = renderer.weights(camera)
+        outputs.append((renderer.render(camera, background=(0.3, 0.1, 0.7)).image, weights.toarray(), trans,
+                        renderer.contributions(camera)))
+    assert outputs[0][0].any()
+    for other in outputs[1:]:
+        assert all(np.array_equal(a, b) for a, b in zip(outputs[0], other))

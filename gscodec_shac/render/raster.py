@@ -187,8 +187,17 @@ def _raster_kernel(
 
 
 #: Tiles handed to a thread at a time: dynamic scheduling balances busy and empty image regions,
-#: consecutive tiles share Gaussians (cache locality).
+#: consecutive tiles share Gaussians (cache locality) ...
 TILE_CHUNK = 8
+#: ... but an image of few tiles gets at least this many chunks per thread: the rate controller's
+#: 192-pixel calibration views have 108 tiles, and chunks of 8 left a thread idle while the other
+#: finished the dense middle of the image (each tile is blended alone: the same pixels either way).
+CHUNKS_PER_THREAD = 32
+
+
+def tile_chunk(n_tiles: int, threads: int) -> int:
+    """Tiles per chunk of the blend's dynamic schedule for an image of ``n_tiles`` tiles on ``threads``."""
+    return max(1, min(TILE_CHUNK, n_tiles // (CHUNKS_PER_THREAD * max(1, threads))))
 
 
 def _run(mode: int, bins: TileBins, width: int, height: int, **arrays: np.ndarray) -> None:
@@ -197,7 +206,7 @@ def _run(mode: int, bins: TileBins, width: int, height: int, **arrays: np.ndarra
     empty_i32 = np.zeros(0, dtype=np.int32)
     empty_i64 = np.zeros(0, dtype=np.int64)
     previous = numba.get_parallel_chunksize()
-    numba.set_parallel_chunksize(TILE_CHUNK)
+    numba.set_parallel_chunksize(tile_chunk(bins.tile_start.shape[0] - 1, numba.get_num_threads()))
     try:
         _raster_kernel(
             mode, bins.tile_start, bins.ids, bins.pack, bins.order,
