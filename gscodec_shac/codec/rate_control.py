@@ -283,9 +283,14 @@ class RateController:
         with ThreadPoolExecutor(self.workers or default_workers()) as pool:
             coded = _position_set_jobs(pool, cloud)
             if cloud.sh_degree > 0:
+                from threadpoolctl import threadpool_limits
+
                 stage = make_stage(self.template.sh_stage, **self.template.sh_params)
                 ac = cloud.ac_matrix()
-                self.stage_ = stage.fit(np.concatenate([cloud.sh_dc, ac], axis=1) if stage.uses_dc else ac)
+                # one BLAS thread, as in the encoder: the position jobs run beside it (a 1M profile at
+                # load 6-8 spent 12 s in this fit, which takes 0.15 s alone; the same bytes)
+                with threadpool_limits(1, user_api="blas"):
+                    self.stage_ = stage.fit(np.concatenate([cloud.sh_dc, ac], axis=1) if stage.uses_dc else ac)
             probes = len(PROBE_QPS)
             attributes = len(QP_ATTRIBUTES) - (0 if self.stage_ is not None else 1)
             renders = 1 + attributes + 1 + len(PRUNE_THRESHOLDS) - 1 + len(self.importance_shares) \
