@@ -456,7 +456,7 @@ class RateController:
             point = self._rate_point({a: qp for a in names} | {"positions": 16})
             encoder = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers)
             stream = encoder.encode(probe)
-            decoded = Decoder(workers=self.workers).decode(stream.to_bytes())
+            decoded = _decoded(stream, self.workers)
             source = probe.select(encoder.order_)
             sizes = stream.attribute_sizes()
             for a in names:
@@ -882,7 +882,7 @@ class RateController:
 
     def measured_psnr(self, stream: Bitstream) -> float:
         """PSNR of the decoded stream against the uncompressed model on the controller's views."""
-        decoded = Decoder(workers=self.workers).decode(stream.to_bytes())
+        decoded = _decoded(stream, self.workers)
         return _psnr(self._rendered_mse(decoded))
 
 
@@ -907,6 +907,16 @@ def _prune(min_opacity: float = 0.0, keep_share: float = 1.0) -> dict[str, float
 
 def _key(plan: Plan) -> tuple:
     return tuple(sorted(plan.settings.items()))
+
+
+def _decoded(stream: Bitstream, workers: int | None) -> GaussianCloud:
+    """``stream`` decoded on one BLAS thread: the SH inverse transform's float32 product then has
+    the same last bits whatever the machine's core count (docs/reliability.md), and so do the
+    errors the controller measures and its choices."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1, user_api="blas"):
+        return Decoder(workers=workers).decode(stream.to_bytes())
 
 
 def _psnr(mse: float) -> float:
