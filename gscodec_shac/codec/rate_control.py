@@ -596,26 +596,19 @@ class RateController:
                 f"(about {best:.2f} dB against the uncompressed model)")
         return min(feasible, key=lambda p: (p.predicted_bytes, p.predicted_mse))
 
-    def _hull(self, prune: int | None = None, positions: int | None = None, dc_only: int | None = None) -> list[Plan]:
-        """Plans along the lower convex hull of (bytes, rendered MSE): one per Lagrange multiplier and
-        pruning threshold (pruning scales every attribute's bytes by the share kept); ``prune`` (an
-        index into :attr:`prune_`), ``positions`` (bits) and ``dc_only`` (an index into :attr:`dc_only_`)
-        fix those settings."""
+    def _hull(self) -> list[Plan]:
+        """Plans along the lower convex hull of (bytes, rendered MSE): one per Lagrange multiplier,
+        pruning choice and DC-only bar (pruning scales every attribute's bytes by the share kept)."""
         plans: dict[tuple, Plan] = {}
         model = self.models_["positions"]
         for index, (_, kept, _) in enumerate(self.prune_):
-            if prune is not None and index != prune:
-                continue
             position_bytes = np.array([self._position_bytes(int(b), index) for b in model.choices])
             for dc in range(len(self.dc_only_)):
-                if dc_only is not None and dc != dc_only:
-                    continue
                 models = self._dc_models(dc)
                 for lam in np.geomspace(1e-3, 1e15, 400):
                     settings = {name: int(m.choices[m.best(lam / kept)]) for name, m in models.items()
                                 if name != "positions"}
-                    settings["positions"] = positions if positions is not None else \
-                        int(model.choices[np.argmin(position_bytes + lam * model.mse)])
+                    settings["positions"] = int(model.choices[np.argmin(position_bytes + lam * model.mse)])
                     settings["prune"] = index
                     settings["dc_only"] = dc
                     key = tuple(sorted(settings.items()))
@@ -701,14 +694,15 @@ class RateController:
         After the first encode the position bits and the pruning stay fixed (changing them
         re-sorts the grid, so no coded chunk could be reused). A size target moves the QPs by
         single steps, the cheapest error per byte first, with the rate model scaled by what the
-        encodes measured; a PSNR target walks the hull of the remaining QPs with the predicted
-        PSNR corrected by the measured one (:meth:`_next_for_quality`).
+        encodes measured; a PSNR target walks a chain of single QP steps from the smallest file
+        above its window, the PSNR estimated from the encodes (:meth:`_next_for_quality`).
         """
         if not self.models_:
             self.fit()
         tic = time.perf_counter()
         self._exact = {}  # bytes measured per attribute and setting
         plan: Plan | None = self._first_plan(target)
+        expected = plan.predicted_psnr  # the PSNR the controller expects of the plan it encodes
         tried: set[tuple] = set()
         best: tuple[Bitstream, Plan, float | None] | None = None
         trials: list[dict[str, float]] = []
@@ -718,7 +712,6 @@ class RateController:
         while plan is not None and len(trials) < self.max_encodes and _key(plan) not in tried:
             tried.add(_key(plan))
             started = time.perf_counter()
-            expected = self._corrected_psnr(plan, measured_plans) if target.kind == "psnr" else plan.predicted_psnr
             cached = set(self._cache)
             stream = self._encode(plan, target)
             bar.update(1)
@@ -743,7 +736,7 @@ class RateController:
                 if best is not None and best[2] <= target.value + PSNR_WINDOW:  # the smallest file that meets it lands
                     plan = None
                 else:
-                    plan = self._next_for_quality(target, measured_plans, tried)
+                    plan, expected = self._next_for_quality(target, measured_plans, tried) or (None, math.nan)
             trials[-1]["seconds"] = time.perf_counter() - started
         bar.close()
         self.seconds_["encode"] = time.perf_counter() - tic
@@ -771,23 +764,14 @@ class RateController:
                                          "template": self.template.name}
         return stream
 
-    @staticmethod
-    def _corrected_psnr(plan: Plan, measured: Sequence[tuple[Plan, int, float]]) -> float:
-        """``plan``'s predicted PSNR plus the prediction error (measured - predicted dB) of the encodes so
-        far, interpolated in log bytes between them (the nearest one's beyond them)."""
-        if not measured:
-            return plan.predicted_psnr
-        rows = sorted((math.log(size), psnr - done.predicted_psnr) for done, size, psnr in measured)
-        logs, errors = zip(*rows)
-        return plan.predicted_psnr + float(np.interp(math.log(max(plan.predicted_bytes, 1.0)), logs, errors))
-
     def _next_for_quality(self, target: Target, measured: Sequence[tuple[Plan, int, float]],
-                          tried: set[tuple]) -> Plan | None:
-        """The next plan for a PSNR target: a regula falsi along one chain of single QP steps.
+                          tried: set[tuple]) -> tuple[Plan, float] | None:
+        """The next plan for a PSNR target and its estimated PSNR: a regula falsi along one chain of
+        single QP steps.
 
         The chain starts at the smallest measured file above the window (or, when every encode fell
-        short, at the encode nearest the target from below) and walks :meth:`_step` by :meth:`_step` towards the other side. Along
-        it the PSNR is estimated from the start's measured PSNR and the models' change, scaled by the
+        short, at the encode nearest the target from below) and walks :meth:`_step` by :meth:`_step`
+        towards the other side. Along it the PSNR is estimated from the start's measured PSNR and the models' change, scaled by the
         slope between the two encodes nearest the window on either side (1 until both exist): the
         plans along one chain differ from its start by single steps that all lower (or raise) the
         quality, where the rendered PSNR follows the models far better than between two plans of
@@ -798,9 +782,12 @@ class RateController:
         above = [(psnr, plan, size) for plan, size, psnr in measured if psnr > top]
         below = [(psnr, plan, size) for plan, size, psnr in measured if psnr < target.value]
         cheaper = bool(above)
-        start_psnr, start, _ = min(above, key=lambda r: r[2]) if cheaper else max(below, key=lambda r: r[0])
-        other = (max(below, key=lambda r: r[0]) if below else None) if cheaper else \
-            (min(above, key=lambda r: r[0]) if above else None)
+        if cheaper:
+            start_psnr, start, _ = min(above, key=lambda r: r[2])
+            other = max(below, key=lambda r: r[0]) if below else None
+        else:
+            start_psnr, start, _ = max(below, key=lambda r: r[0])
+            other = None  # nothing measured above the window
         slope = 1.0
         if other is not None and abs(start.predicted_psnr - other[1].predicted_psnr) >= PSNR_SLOPE_SPREAD:
             slope = (start_psnr - other[0]) / (start.predicted_psnr - other[1].predicted_psnr)
@@ -814,8 +801,10 @@ class RateController:
         estimate = {id(p): start_psnr + slope * (p.predicted_psnr - start.predicted_psnr) for p in moves}
         reaching = [p for p in moves if estimate[id(p)] >= aim]
         if reaching:
-            return min(reaching, key=lambda p: (p.predicted_bytes, -estimate[id(p)]))
-        return max(moves, key=lambda p: (estimate[id(p)], -p.predicted_bytes))
+            chosen = min(reaching, key=lambda p: (p.predicted_bytes, -estimate[id(p)]))
+        else:
+            chosen = max(moves, key=lambda p: (estimate[id(p)], -p.predicted_bytes))
+        return chosen, estimate[id(chosen)]
 
     def _single_steps(self, plan: Plan) -> list[Plan]:
         """Every plan one QP step of one attribute away from ``plan``: the finest moves between two
