@@ -771,13 +771,13 @@ class RateController:
 
         The chain starts at the smallest measured file above the window (or, when every encode fell
         short, at the encode nearest the target from below) and walks :meth:`_step` by :meth:`_step`
-        towards the other side. Along it the PSNR is estimated from the start's measured PSNR and the models' change, scaled by the
-        slope between the two encodes nearest the window on either side (1 until both exist): the
-        plans along one chain differ from its start by single steps that all lower (or raise) the
-        quality, where the rendered PSNR follows the models far better than between two plans of
-        other QP mixes (two plans of about the same size can differ by 0.3 dB, the window's width).
-        The cheapest untried plan estimated to reach the window's middle is next; None when the
-        chain holds no untried plan."""
+        towards the other side. Along it the PSNR is estimated from the start's measured PSNR and the
+        models' change, scaled by the slope between the start and the encode nearest the window on
+        the other side (1 until one exists): the plans along one chain differ from its start by
+        single steps that all lower (or raise) the quality, where the rendered PSNR follows the
+        models far better than between two plans of other QP mixes (two plans of about the same size
+        can differ by 0.3 dB, the window's width). The cheapest untried plan estimated to reach the
+        window's middle is next (else the best estimated); None when the chain holds no untried plan."""
         top, aim = target.value + PSNR_WINDOW, target.value + PSNR_WINDOW / 2
         above = [(psnr, plan, size) for plan, size, psnr in measured if psnr > top]
         below = [(psnr, plan, size) for plan, size, psnr in measured if psnr < target.value]

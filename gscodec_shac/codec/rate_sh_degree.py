@@ -96,9 +96,10 @@ def fit_choices(
 ) -> list[DcOnlyChoice]:
     """The measured :class:`DcOnlyChoice` of every bar in ``bars`` (bar 0 first, unchanged).
 
-    ``without``: the SH bytes of the probe without a bar at each of :data:`RATIO_QPS` (the rate model's
-    own probe encodes), ``encode_probe(bar, qp)``: those bytes with the bar, scaled alike; ``zeroing_errors(bar)``: the zeroing error under each pruning
-    candidate (``bar``: a progress bar advanced once per bar)."""
+    ``without``: the SH bytes of the probe without a bar at each of :data:`RATIO_QPS` (the rate
+    model's own probe encodes); ``encode_probe(bar, qp)``: those bytes with the bar, scaled alike;
+    ``zeroing_errors(bar)``: the zeroing error under each pruning candidate (``bar``: a progress bar
+    advanced once per bar)."""
     out = [DcOnlyChoice(0.0)]
     if not any(value > 0 for value in bars):
         return out
