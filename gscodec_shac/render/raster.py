@@ -20,6 +20,10 @@ segment instead of one per pixel, agreeing with direct evaluation to ~1e-14 rela
 positive-definite conic (guaranteed by the 0.3 dilation) ``power <= 0`` everywhere, so the
 reference's ``power > 0`` test never fires and is not repeated per pixel. All in float64.
 
+A tile's list is walked in blocks of :data:`GATHER_BLOCK` entries whose parameter rows are first
+copied into a small per-tile buffer (the copy's loads are independent of each other, so the memory
+system overlaps them; the blend's own reads of a large scene's pack wait one by one).
+
 Modes: ``MODE_IMAGE`` (colour, transmittance, depth, last contributor), ``MODE_COUNT``
 (contributions per pixel), ``MODE_WEIGHTS`` (each contribution's Gaussian and weight
 ``alpha * T``, written at ``indptr[pixel]``) and ``MODE_TOTALS`` (the weights ``alpha * T``
@@ -54,6 +58,12 @@ from gscodec_shac.render.projection import (
     P_Y,
 )
 
+#: Tile-list entries whose parameter rows the blend copies at a time before it walks them: the
+#: rows are scattered over the depth-sorted pack, and a loop of independent loads fetches them
+#: several times faster than the blend's own dependent reads (1M Gaussians, 192-pixel view: 0.095
+#: -> 0.043 s per blend; 800 pixels: 0.14 -> 0.075 s; the same bits; no change where the pack fits
+#: in cache: 75k bonsai, 800 pixels; 64 and 1,024 entries gave the same).
+GATHER_BLOCK = 256
 MODE_IMAGE = 0
 MODE_COUNT = 1
 MODE_WEIGHTS = 2
@@ -93,22 +103,29 @@ def _raster_kernel(
         active = (x1 - x0 + 1) * (y1 - y0 + 1)
         start = tile_start[tile]
         end = tile_start[tile + 1]
+        local = np.empty((GATHER_BLOCK, P_DEPTH + 1))  # the next entries' parameter rows, copied together
         for e in range(start, end):
+            j = (e - start) % GATHER_BLOCK
+            if j == 0:
+                for q in range(min(GATHER_BLOCK, end - e)):
+                    row_q = ids[e + q]
+                    for col in range(P_DEPTH + 1):
+                        local[q, col] = pack[row_q, col]
             s = ids[e]
-            mx = pack[s, P_X]
-            my = pack[s, P_Y]
-            a = pack[s, P_A]
-            b = pack[s, P_B]
-            c = pack[s, P_C]
-            opacity = pack[s, P_OPACITY]
-            tau = pack[s, P_TAU]
-            hy = pack[s, P_HY]
-            detc = pack[s, P_DETC]
-            step = pack[s, P_STEP]
-            cr = pack[s, P_R]
-            cg = pack[s, P_G]
-            cb = pack[s, P_BLUE]
-            cz = pack[s, P_DEPTH]
+            mx = local[j, P_X]
+            my = local[j, P_Y]
+            a = local[j, P_A]
+            b = local[j, P_B]
+            c = local[j, P_C]
+            opacity = local[j, P_OPACITY]
+            tau = local[j, P_TAU]
+            hy = local[j, P_HY]
+            detc = local[j, P_DETC]
+            step = local[j, P_STEP]
+            cr = local[j, P_R]
+            cg = local[j, P_G]
+            cb = local[j, P_BLUE]
+            cz = local[j, P_DEPTH]
             inv_a = 1.0 / a
             row_lo = max(y0, math.ceil(my - hy))
             row_hi = min(y1, math.floor(my + hy))
