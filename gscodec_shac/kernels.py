@@ -23,7 +23,7 @@ from typing import Iterable, TextIO
 PACKAGE = Path(__file__).resolve().parent
 #: Modules with ``cache=True`` kernels, by the part of the program that uses them.
 GROUPS: dict[str, tuple[str, ...]] = {
-    "codec": ("codec/quantize.py", "codec/positions.py"),
+    "codec": ("codec/quantize.py", "codec/gap_packing.py"),
     "render": ("render/projection.py", "render/binning.py", "render/shading.py", "render/raster.py"),
     "train": ("render/backward.py", "train/model.py", "train/fastloss.py", "train/colour_path.py"),
 }

@@ -320,18 +320,28 @@ def test_variants_from_one_prepared_frame_render_as_a_fresh_renderer():
             assert not np.array_equal(both, pruned)
 
 
-def test_blend_chunks_of_any_size_give_the_same_pixels(monkeypatch):
-    """The blend hands tiles to threads in chunks (few tiles per chunk on a small image, so both threads
-    stay busy): each tile is blended alone, so the image, the weights and the importance totals are the
-    same with chunks of 1, 3 and 8 tiles."""
+def test_blend_schedule_deals_every_tile_once_and_gives_the_same_pixels_for_any_worker_count(monkeypatch):
+    """The blend deals the tiles to one worker per thread, the longest lists first to the least loaded
+    worker (gscodec_shac/render/raster.py, tile_schedule): every tile goes to exactly one worker, the
+    loads are balanced, and since each tile is blended alone the image, the weights and the importance
+    totals are the same with 1, 2, 3 and 8 workers."""
     from gscodec_shac.render import raster
 
-    assert raster.tile_chunk(108, 2) == 1 and raster.tile_chunk(300, 2) == 4 and raster.tile_chunk(8160, 2) == 8
+    lengths = np.array([0, 500, 3, 3, 900, 0, 40, 41, 7, 600])
+    tile_start = np.concatenate([[0], np.cumsum(lengths)])
+    tiles, worker_start = raster.tile_schedule(tile_start, 2)
+    assert np.array_equal(np.sort(tiles), np.arange(10)) and worker_start[-1] == 10
+    loads = [np.sum(lengths[tiles[a:b]] + raster.TILE_COST) for a, b in zip(worker_start[:-1], worker_start[1:])]
+    assert max(loads) - min(loads) <= 500 + raster.TILE_COST  # LPT: within the largest tile left after the first
+    assert all(np.all(np.diff(tiles[a:b]) > 0) for a, b in zip(worker_start[:-1], worker_start[1:]))
+    assert raster.tile_schedule(tile_start, 64)[1].size == 11  # no more workers than tiles
+
     cloud = random_cloud(np.random.default_rng(5), 600, 3)
     camera = look_at("wide", np.array([0.2, -3.0, 0.6]), np.zeros(3), np.array([0.0, 0.0, 1.0]), 160, 112, 50.0)
     outputs = []
-    for chunk in (1, 3, 8):
-        monkeypatch.setattr(raster, "tile_chunk", lambda n_tiles, threads, chunk=chunk: chunk)
+    schedule = raster.tile_schedule
+    for workers in (1, 2, 3, 8):
+        monkeypatch.setattr(raster, "tile_schedule", lambda start, threads, workers=workers: schedule(start, workers))
         renderer = Renderer(cloud)
         weights, trans = renderer.weights(camera)
         outputs.append((renderer.render(camera, background=(0.3, 0.1, 0.7)).image, weights.toarray(), trans,

@@ -123,6 +123,20 @@ def test_position_gaps_unpack_as_packed(monkeypatch, block):
     assert np.array_equal(positions._unpack_mantissas(packed, lengths), gaps)
 
 
+def test_position_gaps_pack_as_a_plain_bit_string():
+    """The encoder's compiled packer (gscodec_shac/codec/gap_packing.py) writes each gap's bits below
+    its leading one, most significant first, exactly as a bit string built in Python would."""
+    rng = np.random.default_rng(7)
+    lengths = rng.integers(0, 64, size=3000)
+    gaps = np.where(lengths > 0, np.uint64(1) << np.maximum(lengths - 1, 0).astype(np.uint64), 0).astype(np.uint64)
+    gaps |= rng.integers(0, 1 << 62, size=gaps.size, dtype=np.uint64) & (gaps - np.uint64(1))
+    gaps[lengths == 0] = 0
+    bits = "".join(format(int(g) & ((1 << (int(k) - 1)) - 1), f"0{int(k) - 1}b") for g, k in zip(gaps, lengths) if k > 1)
+    bits += "0" * (-len(bits) % 8)
+    assert positions._pack_mantissas(gaps, lengths) == int(bits, 2).to_bytes(len(bits) // 8, "big")
+    assert positions._pack_mantissas(np.zeros(3, np.uint64), np.zeros(3, np.int64)) == b""
+
+
 @pytest.mark.parametrize("block_rows", [1, 7, 64, 1 << 16])
 def test_ply_written_in_blocks_equals_the_whole_table(tmp_path, block_rows):
     cloud = read_ply(ROOT / "tests" / "fixtures" / "streams" / "input_sh3.ply")

@@ -117,53 +117,18 @@ def decode_sorted_codes(data: bytes, count: int, bits: int) -> np.ndarray:
 
 def _bit_lengths(values: np.ndarray) -> np.ndarray:
     """Number of significant bits of each uint64 (0 for 0)."""
-    lengths = np.zeros(values.shape, dtype=np.int64)
-    v = values.copy()
-    for shift in (32, 16, 8, 4, 2, 1):
-        big = v >= (np.uint64(1) << np.uint64(shift))
-        lengths[big] += shift
-        v[big] >>= np.uint64(shift)
-    lengths[v > 0] += 1
-    return lengths
+    from gscodec_shac.codec.gap_packing import bit_lengths
+
+    return bit_lengths(np.ascontiguousarray(values, dtype=np.uint64))
 
 
 def _pack_mantissas(gaps: np.ndarray, lengths: np.ndarray) -> bytes:
-    """The ``k - 1`` bits below the leading one of each gap, most significant first, as one bit string.
+    """The ``k - 1`` bits below the leading one of each gap, most significant first, as one bit string
+    (compiled: :func:`.gap_packing.pack_low_bits`)."""
+    from gscodec_shac.codec.gap_packing import pack_low_bits
 
-    Whole-array numpy: each field (at most 62 bits, starting at bit offset ``o <= 7`` of its
-    first byte) lies in a 72-bit window of 9 bytes; the fields do not overlap, so adding the
-    windows' bytes (``np.bincount``) sets every bit once.
-    """
-    gaps = np.asarray(gaps, dtype=np.uint64)
-    lengths = np.asarray(lengths, dtype=np.int64)
-    total = int(np.maximum(lengths - 1, 0).sum())
-    out = np.zeros((total + 7) // 8 + 9, dtype=np.int64)
-    base = 0
-    for start in range(0, lengths.size, _UNPACK_BLOCK):
-        width = np.maximum(lengths[start : start + _UNPACK_BLOCK] - 1, 0)
-        ends = np.cumsum(width) + base
-        _add_fields(out, gaps[start : start + _UNPACK_BLOCK], ends - width, width)
-        base = int(ends[-1])
-    return out[: (total + 7) // 8].astype(np.uint8).tobytes()
-
-
-def _add_fields(out: np.ndarray, gaps: np.ndarray, first: np.ndarray, width: np.ndarray) -> None:
-    """Add to the bytes ``out`` the low ``width`` bits of ``gaps``, MSB first from bit offsets ``first``."""
-    m = width.astype(np.uint64)
-    value = gaps & ((np.uint64(1) << m) - np.uint64(1))  # m <= 62: no shift by 64
-    shift = np.int64(72) - (first & 7) - width  # the field's place in its 72-bit window, 3..72
-    up = np.minimum(np.maximum(shift - 8, 0), 63).astype(np.uint64)
-    down = np.maximum(8 - shift, 0).astype(np.uint64)
-    high = np.where(shift >= 8, value << up, value >> down)  # window bits 71..8: bytes 0..7
-    low = np.where(shift < 8, (value << np.minimum(shift, 7).astype(np.uint64)) & np.uint64(0xFF), np.uint64(0))
-    window = np.empty((gaps.size, 9), dtype=np.uint8)
-    window[:, :8] = high.astype(">u8").view(np.uint8).reshape(-1, 8)
-    window[:, 8] = low
-    byte = first >> 3
-    lo = int(byte[0]) if byte.size else 0
-    index = (byte[:, None] - lo + np.arange(9)).reshape(-1)
-    added = np.bincount(index, weights=window.reshape(-1), minlength=0)
-    out[lo : lo + added.size] += added.astype(np.int64)
+    widths = np.maximum(np.asarray(lengths, dtype=np.int64) - 1, 0)
+    return pack_low_bits(np.ascontiguousarray(gaps, dtype=np.uint64), widths).tobytes()
 
 
 def _unpack_mantissas(data: bytes, lengths: np.ndarray) -> np.ndarray:

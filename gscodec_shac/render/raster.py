@@ -75,146 +75,169 @@ T_MIN = 1e-4
 
 @numba.njit(cache=True, parallel=True)
 def _raster_kernel(
-    mode, tile_start, ids, pack, order, width, height, tiles_x, tile_order,
+    mode, tile_start, ids, pack, order, width, height, tiles_x, tile_order, worker_start,
     color_out, t_out, depth_out, last_out, count_out, indptr, w_cols, w_vals,
 ):  # pragma: no cover - compiled
     npix = BLOCK * BLOCK
-    for k in numba.prange(tile_order.shape[0]):
-        tile = tile_order[k]
-        ty = tile // tiles_x
-        tx = tile - ty * tiles_x
-        x0 = tx * BLOCK
-        y0 = ty * BLOCK
-        x1 = min(x0 + BLOCK, width) - 1
-        y1 = min(y0 + BLOCK, height) - 1
-        # per pixel: transmittance, r, g, b, depth sum
-        state = np.zeros((npix, 5))
-        state[:, 0] = 1.0
-        done = np.zeros(npix, dtype=np.bool_)
-        last = np.zeros(npix, dtype=np.int32)
-        cursor = np.zeros(npix, dtype=np.int64)
-        # columns [span_lo, span_hi] of each row still hold every pixel that is not done
-        span_lo = np.full(BLOCK, x0, dtype=np.int64)
-        span_hi = np.full(BLOCK, x1, dtype=np.int64)
-        if mode == MODE_WEIGHTS:
+    for worker in numba.prange(worker_start.shape[0] - 1):
+        for k in range(worker_start[worker], worker_start[worker + 1]):
+            tile = tile_order[k]
+            ty = tile // tiles_x
+            tx = tile - ty * tiles_x
+            x0 = tx * BLOCK
+            y0 = ty * BLOCK
+            x1 = min(x0 + BLOCK, width) - 1
+            y1 = min(y0 + BLOCK, height) - 1
+            # per pixel: transmittance, r, g, b, depth sum
+            state = np.zeros((npix, 5))
+            state[:, 0] = 1.0
+            done = np.zeros(npix, dtype=np.bool_)
+            last = np.zeros(npix, dtype=np.int32)
+            cursor = np.zeros(npix, dtype=np.int64)
+            # columns [span_lo, span_hi] of each row still hold every pixel that is not done
+            span_lo = np.full(BLOCK, x0, dtype=np.int64)
+            span_hi = np.full(BLOCK, x1, dtype=np.int64)
+            if mode == MODE_WEIGHTS:
+                for yy in range(y0, y1 + 1):
+                    for xx in range(x0, x1 + 1):
+                        cursor[(yy - y0) * BLOCK + xx - x0] = indptr[yy * width + xx]
+            active = (x1 - x0 + 1) * (y1 - y0 + 1)
+            start = tile_start[tile]
+            end = tile_start[tile + 1]
+            local = np.empty((GATHER_BLOCK, P_DEPTH + 1))  # the next entries' parameter rows, copied together
+            for e in range(start, end):
+                j = (e - start) % GATHER_BLOCK
+                if j == 0:
+                    for q in range(min(GATHER_BLOCK, end - e)):
+                        row_q = ids[e + q]
+                        for col in range(P_DEPTH + 1):
+                            local[q, col] = pack[row_q, col]
+                s = ids[e]
+                mx = local[j, P_X]
+                my = local[j, P_Y]
+                a = local[j, P_A]
+                b = local[j, P_B]
+                c = local[j, P_C]
+                opacity = local[j, P_OPACITY]
+                tau = local[j, P_TAU]
+                hy = local[j, P_HY]
+                detc = local[j, P_DETC]
+                step = local[j, P_STEP]
+                cr = local[j, P_R]
+                cg = local[j, P_G]
+                cb = local[j, P_BLUE]
+                cz = local[j, P_DEPTH]
+                inv_a = 1.0 / a
+                row_lo = max(y0, math.ceil(my - hy))
+                row_hi = min(y1, math.floor(my + hy))
+                for py in range(row_lo, row_hi + 1):
+                    row = py - y0
+                    if span_lo[row] > span_hi[row]:
+                        continue
+                    v = py - my
+                    disc = a * tau - detc * v * v
+                    if disc < 0.0:
+                        continue
+                    root = math.sqrt(disc)
+                    x_lo = max(span_lo[row], math.ceil(mx - (b * v + root) * inv_a))
+                    x_hi = min(span_hi[row], math.floor(mx - (b * v - root) * inv_a))
+                    if x_lo > x_hi:
+                        continue
+                    dx = mx - x_lo
+                    dy = my - py
+                    g = opacity * math.exp(-0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy)
+                    ratio = math.exp(a * dx - 0.5 * a + b * dy)
+                    p = row * BLOCK + (x_lo - x0)
+                    finished = False
+                    for _ in range(x_lo, x_hi + 1):
+                        if not done[p]:
+                            alpha = min(ALPHA_MAX, g)
+                            if alpha >= ALPHA_MIN:
+                                t_now = state[p, 0]
+                                t_next = t_now * (1.0 - alpha)
+                                if t_next < T_MIN:
+                                    done[p] = True
+                                    finished = True
+                                    active -= 1
+                                else:
+                                    w = alpha * t_now
+                                    if mode == MODE_IMAGE:
+                                        state[p, 1] += w * cr
+                                        state[p, 2] += w * cg
+                                        state[p, 3] += w * cb
+                                        state[p, 4] += w * cz
+                                        last[p] = e - start + 1
+                                    elif mode == MODE_COUNT:
+                                        cursor[p] += 1
+                                    elif mode == MODE_TOTALS:
+                                        w_vals[e] += w
+                                    else:
+                                        w_cols[cursor[p]] = order[s]
+                                        w_vals[cursor[p]] = w
+                                        cursor[p] += 1
+                                    state[p, 0] = t_next
+                        g *= ratio
+                        ratio *= step
+                        p += 1
+                    if finished:
+                        lo = span_lo[row]
+                        hi = span_hi[row]
+                        while lo <= hi and done[row * BLOCK + lo - x0]:
+                            lo += 1
+                        while hi >= lo and done[row * BLOCK + hi - x0]:
+                            hi -= 1
+                        span_lo[row] = lo
+                        span_hi[row] = hi
+                if active == 0:
+                    break
             for yy in range(y0, y1 + 1):
                 for xx in range(x0, x1 + 1):
-                    cursor[(yy - y0) * BLOCK + xx - x0] = indptr[yy * width + xx]
-        active = (x1 - x0 + 1) * (y1 - y0 + 1)
-        start = tile_start[tile]
-        end = tile_start[tile + 1]
-        local = np.empty((GATHER_BLOCK, P_DEPTH + 1))  # the next entries' parameter rows, copied together
-        for e in range(start, end):
-            j = (e - start) % GATHER_BLOCK
-            if j == 0:
-                for q in range(min(GATHER_BLOCK, end - e)):
-                    row_q = ids[e + q]
-                    for col in range(P_DEPTH + 1):
-                        local[q, col] = pack[row_q, col]
-            s = ids[e]
-            mx = local[j, P_X]
-            my = local[j, P_Y]
-            a = local[j, P_A]
-            b = local[j, P_B]
-            c = local[j, P_C]
-            opacity = local[j, P_OPACITY]
-            tau = local[j, P_TAU]
-            hy = local[j, P_HY]
-            detc = local[j, P_DETC]
-            step = local[j, P_STEP]
-            cr = local[j, P_R]
-            cg = local[j, P_G]
-            cb = local[j, P_BLUE]
-            cz = local[j, P_DEPTH]
-            inv_a = 1.0 / a
-            row_lo = max(y0, math.ceil(my - hy))
-            row_hi = min(y1, math.floor(my + hy))
-            for py in range(row_lo, row_hi + 1):
-                row = py - y0
-                if span_lo[row] > span_hi[row]:
-                    continue
-                v = py - my
-                disc = a * tau - detc * v * v
-                if disc < 0.0:
-                    continue
-                root = math.sqrt(disc)
-                x_lo = max(span_lo[row], math.ceil(mx - (b * v + root) * inv_a))
-                x_hi = min(span_hi[row], math.floor(mx - (b * v - root) * inv_a))
-                if x_lo > x_hi:
-                    continue
-                dx = mx - x_lo
-                dy = my - py
-                g = opacity * math.exp(-0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy)
-                ratio = math.exp(a * dx - 0.5 * a + b * dy)
-                p = row * BLOCK + (x_lo - x0)
-                finished = False
-                for _ in range(x_lo, x_hi + 1):
-                    if not done[p]:
-                        alpha = min(ALPHA_MAX, g)
-                        if alpha >= ALPHA_MIN:
-                            t_now = state[p, 0]
-                            t_next = t_now * (1.0 - alpha)
-                            if t_next < T_MIN:
-                                done[p] = True
-                                finished = True
-                                active -= 1
-                            else:
-                                w = alpha * t_now
-                                if mode == MODE_IMAGE:
-                                    state[p, 1] += w * cr
-                                    state[p, 2] += w * cg
-                                    state[p, 3] += w * cb
-                                    state[p, 4] += w * cz
-                                    last[p] = e - start + 1
-                                elif mode == MODE_COUNT:
-                                    cursor[p] += 1
-                                elif mode == MODE_TOTALS:
-                                    w_vals[e] += w
-                                else:
-                                    w_cols[cursor[p]] = order[s]
-                                    w_vals[cursor[p]] = w
-                                    cursor[p] += 1
-                                state[p, 0] = t_next
-                    g *= ratio
-                    ratio *= step
-                    p += 1
-                if finished:
-                    lo = span_lo[row]
-                    hi = span_hi[row]
-                    while lo <= hi and done[row * BLOCK + lo - x0]:
-                        lo += 1
-                    while hi >= lo and done[row * BLOCK + hi - x0]:
-                        hi -= 1
-                    span_lo[row] = lo
-                    span_hi[row] = hi
-            if active == 0:
-                break
-        for yy in range(y0, y1 + 1):
-            for xx in range(x0, x1 + 1):
-                p = (yy - y0) * BLOCK + xx - x0
-                pix = yy * width + xx
-                t_out[pix] = state[p, 0]
-                if mode == MODE_IMAGE:
-                    for ch in range(3):
-                        color_out[pix, ch] = state[p, ch + 1]
-                    depth_out[pix] = state[p, 4]
-                    last_out[pix] = last[p]
-                elif mode == MODE_COUNT:
-                    count_out[pix] = cursor[p]
+                    p = (yy - y0) * BLOCK + xx - x0
+                    pix = yy * width + xx
+                    t_out[pix] = state[p, 0]
+                    if mode == MODE_IMAGE:
+                        for ch in range(3):
+                            color_out[pix, ch] = state[p, ch + 1]
+                        depth_out[pix] = state[p, 4]
+                        last_out[pix] = last[p]
+                    elif mode == MODE_COUNT:
+                        count_out[pix] = cursor[p]
 
 
-#: Tiles handed to a thread at a time: dynamic scheduling balances busy and empty image regions,
-#: consecutive tiles share Gaussians (cache locality) ...
-TILE_CHUNK = 8
-#: ... but an image of few tiles gets at least this many chunks per thread: the rate controller's
-#: 192-pixel calibration views have 108 tiles, and chunks of 8 left a thread idle while the other
-#: finished the dense middle of the image (each tile is blended alone: the same pixels either way).
-CHUNKS_PER_THREAD = 32
+#: What a tile costs the blend besides its list entries (setting up and writing its pixels), in
+#: entries: the weight of an empty tile in :func:`tile_schedule`.
+TILE_COST = 64
 
 
-def tile_chunk(n_tiles: int, threads: int) -> int:
-    """Tiles per chunk of the blend's dynamic schedule for an image of ``n_tiles`` tiles on ``threads``."""
-    return max(1, min(TILE_CHUNK, n_tiles // (CHUNKS_PER_THREAD * max(1, threads))))
+@numba.njit(cache=True)
+def _deal(cost, workers):  # pragma: no cover - compiled
+    """Worker of each tile: the most costly tile first, each to the least loaded worker (LPT)."""
+    load = np.zeros(workers)
+    owner = np.empty(cost.shape[0], dtype=np.int64)
+    for tile in np.argsort(-cost, kind="mergesort"):
+        worker = np.argmin(load)
+        owner[tile] = worker
+        load[worker] += cost[tile]
+    return owner
+
+
+def tile_schedule(tile_start: np.ndarray, workers: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(tiles, worker_start)``: the tiles dealt to ``workers`` threads, worker ``w`` blending
+    ``tiles[worker_start[w]:worker_start[w + 1]]`` in increasing order (neighbours share Gaussians).
+
+    The blend's parallel loop runs over the workers, one per thread: numba splits a loop's range
+    into equal runs of iterations, so a loop over the tiles themselves left one thread the dense
+    middle of an image and the other its empty border (a 192-pixel view of 1M Gaussians: 1.5 of
+    2 cores busy). A tile's cost is taken as its list length plus :data:`TILE_COST`; every tile
+    is blended alone, so the pixels do not depend on the schedule.
+    """
+    cost = np.diff(tile_start).astype(np.float64) + TILE_COST
+    workers = max(1, min(int(workers), cost.shape[0]))
+    owner = _deal(cost, workers) if workers > 1 else np.zeros(cost.shape[0], dtype=np.int64)
+    tiles = np.argsort(owner, kind="stable")
+    worker_start = np.zeros(workers + 1, dtype=np.int64)
+    np.cumsum(np.bincount(owner, minlength=workers), out=worker_start[1:])
+    return tiles, worker_start
 
 
 def _run(mode: int, bins: TileBins, width: int, height: int, **arrays: np.ndarray) -> None:
@@ -222,18 +245,13 @@ def _run(mode: int, bins: TileBins, width: int, height: int, **arrays: np.ndarra
     empty_f = np.zeros(0)
     empty_i32 = np.zeros(0, dtype=np.int32)
     empty_i64 = np.zeros(0, dtype=np.int64)
-    previous = numba.get_parallel_chunksize()
-    numba.set_parallel_chunksize(tile_chunk(bins.tile_start.shape[0] - 1, numba.get_num_threads()))
-    try:
-        _raster_kernel(
-            mode, bins.tile_start, bins.ids, bins.pack, bins.order,
-            width, height, bins.tiles_x, np.arange(bins.tile_start.shape[0] - 1, dtype=np.int64),
-            arrays.get("color", np.zeros((0, 3))), arrays.get("trans", np.zeros(npix)),
-            arrays.get("depth", empty_f), arrays.get("last", empty_i32), arrays.get("count", empty_i64),
-            arrays.get("indptr", empty_i64), arrays.get("cols", empty_i32), arrays.get("vals", empty_f),
-        )
-    finally:
-        numba.set_parallel_chunksize(previous)
+    tiles, worker_start = tile_schedule(bins.tile_start, numba.get_num_threads())
+    _raster_kernel(
+        mode, bins.tile_start, bins.ids, bins.pack, bins.order, width, height, bins.tiles_x, tiles, worker_start,
+        arrays.get("color", np.zeros((0, 3))), arrays.get("trans", np.zeros(npix)),
+        arrays.get("depth", empty_f), arrays.get("last", empty_i32), arrays.get("count", empty_i64),
+        arrays.get("indptr", empty_i64), arrays.get("cols", empty_i32), arrays.get("vals", empty_f),
+    )
 
 
 def rasterize(
