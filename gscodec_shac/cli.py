@@ -29,7 +29,7 @@ from gscodec_shac import __version__, commands
 from gscodec_shac import errors, kernels
 from gscodec_shac.commands._options import resolve_args
 from gscodec_shac.errors import GscodecError
-from gscodec_shac.heap import trim_freed_memory
+from gscodec_shac.heap import returns_freed_memory, trim_freed_memory
 from gscodec_shac.progress import plain_progress_lines
 
 #: Exit statuses, as ``--help`` lists them.
@@ -102,7 +102,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 1
     debug = bool(args.debug or os.environ.get(DEBUG_ENV, "") not in ("", "0"))
-    trim_freed_memory()  # peak memory of large encodes and decodes (gscodec_shac/heap.py)
+    if returns_freed_memory(args):
+        trim_freed_memory()  # peak memory of large encodes and decodes (gscodec_shac/heap.py)
     try:
         with _signals_as_exceptions(), _warnings_as_lines(debug), plain_progress_lines(args.command):
             args = resolve_args(args)

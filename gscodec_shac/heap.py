@@ -5,12 +5,19 @@ and raises its threshold for ``mmap`` as large blocks are freed, so a process th
 allocates and frees many blocks of a few MB (video frames, row blocks, worker threads'
 arenas) keeps memory it no longer uses: a 4M-Gaussian decode peaked 0.48 GB higher than
 with a trim threshold of 0 (docs/benchmarks.md, issue 25). :func:`trim_freed_memory`
-sets that threshold to 0 for this process; the ``gscodec-shac`` command calls it at
-start-up. It changes no result, only when memory is returned.
+sets that threshold to 0 for this process. It changes no result, only when memory is
+returned, and what that costs: with the threshold set, glibc stops raising its ``mmap``
+threshold, so every block of 128 kB or more is mapped afresh and faulted in page by page
+each time it is allocated. A one-pass encode or decode barely notices (a 1M decode to PLY:
+the same time, 0.46 against 0.62 GB peak; a 1M ladder encode: 0.69 against 0.75 GB); a run
+that renders the same cloud over and over does (the calibration of a 1M ``--target-bpg``
+run: 15.1-15.6 s against 12.9-13.4 s). :func:`returns_freed_memory` says which commands
+the ``gscodec-shac`` command sets it for.
 """
 
 from __future__ import annotations
 
+import argparse
 import ctypes
 
 #: glibc's ``mallopt`` parameter number of the trim threshold (``<malloc.h>``).
@@ -26,3 +33,14 @@ def trim_freed_memory() -> bool:
     if mallopt is None:
         return False
     return bool(mallopt(M_TRIM_THRESHOLD, 0))
+
+
+def returns_freed_memory(args: argparse.Namespace) -> bool:
+    """Whether the command of ``args`` should :func:`trim_freed_memory`: the one-pass commands whose
+    peak memory issue 25 bounds (``decode``, ``convert``, an ``encode`` at a rate point), not the
+    ones that render a cloud many times (an ``encode`` to a target, ``render``, ``rd``, training)."""
+    if args.command in ("decode", "convert"):
+        return True
+    if args.command == "encode":
+        return all(getattr(args, name, None) is None for name in ("target_size", "target_bpg", "target_psnr"))
+    return False
