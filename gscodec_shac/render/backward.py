@@ -70,7 +70,7 @@ from gscodec_shac.render.projection import (
     camera_params,
     project_into,
 )
-from gscodec_shac.render.raster import ALPHA_MAX, rasterize
+from gscodec_shac.render.raster import ALPHA_MAX, rasterize, tile_pixels
 from gscodec_shac.render.renderer import _Workspace
 from gscodec_shac.render.shading import view_colors
 from gscodec_shac.sh import C0, C1, C2, C3
@@ -157,12 +157,7 @@ def _raster_backward_kernel(
         gb = np.empty(npix)
         count = np.zeros(npix, dtype=np.int64)
         for tile in range(lane, n_tiles, n_lanes):
-            ty = tile // tiles_x
-            tx = tile - ty * tiles_x
-            x0 = tx * BLOCK
-            y0 = ty * BLOCK
-            x1 = min(x0 + BLOCK, width) - 1
-            y1 = min(y0 + BLOCK, height) - 1
+            x0, y0, x1, y1 = tile_pixels(tile, tiles_x, width, height)
             max_last = 0
             for yy in range(y0, y1 + 1):
                 for xx in range(x0, x1 + 1):

@@ -73,6 +73,16 @@ ALPHA_MAX = 0.99
 T_MIN = 1e-4
 
 
+@numba.njit(cache=True, inline="always")
+def tile_pixels(tile, tiles_x, width, height):  # pragma: no cover - compiled
+    """The pixel columns ``x0..x1`` and rows ``y0..y1`` (inclusive) of tile ``tile`` (row-major tiles)."""
+    ty = tile // tiles_x
+    tx = tile - ty * tiles_x
+    x0 = tx * BLOCK
+    y0 = ty * BLOCK
+    return x0, y0, min(x0 + BLOCK, width) - 1, min(y0 + BLOCK, height) - 1
+
+
 @numba.njit(cache=True, parallel=True)
 def _raster_kernel(
     mode, tile_start, ids, pack, order, width, height, tiles_x, tile_order, worker_start,
@@ -82,12 +92,7 @@ def _raster_kernel(
     for worker in numba.prange(worker_start.shape[0] - 1):
         for k in range(worker_start[worker], worker_start[worker + 1]):
             tile = tile_order[k]
-            ty = tile // tiles_x
-            tx = tile - ty * tiles_x
-            x0 = tx * BLOCK
-            y0 = ty * BLOCK
-            x1 = min(x0 + BLOCK, width) - 1
-            y1 = min(y0 + BLOCK, height) - 1
+            x0, y0, x1, y1 = tile_pixels(tile, tiles_x, width, height)
             # per pixel: transmittance, r, g, b, depth sum
             state = np.zeros((npix, 5))
             state[:, 0] = 1.0
