@@ -29,9 +29,10 @@ photos downscaled with cv2 INTER_AREA; fine-tuning targets = ground truth), ``ka
 ``synthetic`` (make_synthetic_scene(50,000, seed 0) with 64 orbit cameras at 200x150, targets =
 the original renders).
 
-Writes ``/work/outputs/lst_finetune/<scene>.json`` (and the fine-tuned PLY + compact ``.lst.npz``
-+ checkpoint + loss log there; interrupted runs resume from their checkpoints) and the
-fine-tuning section of ``docs/lst.md`` (between the ``lst-finetune`` markers).
+Writes ``<scene>.json`` into ``--out`` (default ``../outputs/lst_finetune``, beside the repository),
+with the fine-tuned PLY, compact ``.lst.npz``, checkpoint and loss log there (interrupted runs resume
+from their checkpoints), and the fine-tuning section of ``docs/lst.md`` (between the ``lst-finetune``
+markers).
 
     python scripts/eval_lst_finetune.py                                  # all scenes, defaults
     python scripts/eval_lst_finetune.py --scenes kacy --steps 500        # one scene, quick
@@ -78,7 +79,7 @@ from gscodec_shac.train.losses import render_loss  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SCENES_DIR = Path(os.environ.get("GSCODEC_SHARED_SCENES", REPO.parent / "shared" / "data" / "scenes"))
-OUT_DIR = Path("/work/outputs/lst_finetune")
+OUT_DIR = REPO.parent / "outputs" / "lst_finetune"  # beside the repository: trained outputs stay out of git
 BEGIN, END = "<!-- lst-finetune:begin -->", "<!-- lst-finetune:end -->"
 REFIT_ROUNDS = 50
 #: View-cache budget: bonsai's 255 training views take ~3.5 GB at 200x133 (float32 weights, int32 indices).

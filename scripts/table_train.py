@@ -58,7 +58,8 @@ def size_mb(n: int, ac_dims: int, side_bytes: int = 0) -> float:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("capture", type=Path)
-    parser.add_argument("--runs", type=Path, default=Path("/work/outputs/train"), help="folder of the run folders")
+    parser.add_argument("--runs", type=Path, default=Path(__file__).resolve().parents[2] / "outputs" / "train",
+                        help="folder of the run folders (default: ../outputs/train beside the repository)")
     parser.add_argument("--prefix", required=True, help="run folders are PREFIX_train_l3_d45 etc.")
     parser.add_argument("--images", default=None, help="image folder inside the capture, as given to train")
     parser.add_argument("--width", type=int, default=None, help="image width, as given to train")
