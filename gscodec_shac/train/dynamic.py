@@ -156,6 +156,8 @@ class DynamicConfig:
             raise DynamicTrainError(f"--init-points must be positive, got {self.init_points}")
         if self.depth < 2 or self.width < 1:
             raise DynamicTrainError(f"--net-depth must be >= 2 and --net-width >= 1, got {self.depth}/{self.width}")
+        if not 0.0 < self.lr_deform_final <= self.lr_deform:
+            raise DynamicTrainError(f"--deform-lr-final must be in (0, {self.lr_deform:g}], got {self.lr_deform_final:g}")
         for key, value in self.resolved().items():
             if value < 0:
                 raise DynamicTrainError(f"schedule value {key} must be >= 0, got {value}")
