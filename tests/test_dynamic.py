@@ -652,3 +652,15 @@ def test_the_command_line_sets_the_deformation_learning_rate_floor() -> None:
     args = build_parser().parse_args(["train-dynamic", "scene", "out", "--deform-lr-final", "8e-5"])
     assert args.deform_lr_final == 8e-5
     assert build_parser().parse_args(["train-dynamic", "scene", "out"]).deform_lr_final == 1.6e-6
+
+
+def test_a_bad_training_setting_is_one_error_before_anything_is_read_or_made(tmp_path: Path, capsys) -> None:
+    """``train-dynamic`` refuses a setting its config rejects before it reads the scene or creates OUT_DIR:
+    one ``error:`` line, the usage status, no folder left behind."""
+    from gscodec_shac.cli import main
+
+    out = tmp_path / "run"
+    for bad in (["--deform-lr-final", "0"], ["--iterations", "0"]):
+        assert main(["train-dynamic", str(tmp_path / "no-scene"), str(out), "-q", *bad]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error:") and bad[0] in err and "Traceback" not in err and not out.exists()

@@ -94,6 +94,16 @@ def run(args: argparse.Namespace) -> int:
     if not args.resume:
         check_outputs([out / n for n in ("point_cloud.ply", "deformation.npz", "deformation.json", "metrics.json",
                                          "run.json")], force=args.force)
+    config = None
+    if not args.resume:  # a bad setting is refused before the scene is read or OUT_DIR is made
+        config = DynamicConfig(
+            iterations=args.iterations, sh=args.sh, max_gaussians=args.max_gaussians, init_points=args.init_points,
+            seed=args.seed, depth=args.net_depth, width=args.net_width, warm_up=args.warm_up,
+            densify_from=args.densify_from, densify_until=args.densify_until,
+            densify_interval=args.densify_interval, opacity_reset_interval=args.opacity_reset_interval,
+            sh_interval=args.sh_interval, checkpoint_every=args.checkpoint_every, lr_deform_final=args.deform_lr_final,
+        )
+        config.validate()
     scene = Path(args.scene)
     protect_inputs(*(sorted(scene.iterdir()) if scene.is_dir() else [scene]))
     try:
@@ -121,13 +131,6 @@ def run(args: argparse.Namespace) -> int:
         trainer = DynamicTrainer.from_checkpoint(capture, out)
         print(f"resuming {capture.name} at iteration {trainer.iteration} of {trainer.config.iterations}")
     else:
-        config = DynamicConfig(
-            iterations=args.iterations, sh=args.sh, max_gaussians=args.max_gaussians, init_points=args.init_points,
-            seed=args.seed, depth=args.net_depth, width=args.net_width, warm_up=args.warm_up,
-            densify_from=args.densify_from, densify_until=args.densify_until,
-            densify_interval=args.densify_interval, opacity_reset_interval=args.opacity_reset_interval,
-            sh_interval=args.sh_interval, checkpoint_every=args.checkpoint_every, lr_deform_final=args.deform_lr_final,
-        )
         trainer = DynamicTrainer(capture, config)
         size = [capture.train_cameras[0].width, capture.train_cameras[0].height]
         write_atomic(out / "run.json", json.dumps({
