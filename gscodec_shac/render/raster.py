@@ -60,9 +60,8 @@ from gscodec_shac.render.projection import (
 
 #: Tile-list entries whose parameter rows the blend copies at a time before it walks them: the
 #: rows are scattered over the depth-sorted pack, and a loop of independent loads fetches them
-#: several times faster than the blend's own dependent reads (1M Gaussians, 192-pixel view: 0.095
-#: -> 0.043 s per blend; 800 pixels: 0.14 -> 0.075 s; the same bits; no change where the pack fits
-#: in cache: 75k bonsai, 800 pixels; 64 and 1,024 entries gave the same).
+#: several times faster than the blend's own dependent reads (docs/benchmarks.md, "This stop: the
+#: blend's memory reads ..."; 64 and 1,024 entries gave the same times).
 GATHER_BLOCK = 256
 MODE_IMAGE = 0
 MODE_COUNT = 1
@@ -238,7 +237,7 @@ def tile_schedule(tile_start: np.ndarray, workers: int) -> tuple[np.ndarray, np.
     """
     cost = np.diff(tile_start).astype(np.float64) + TILE_COST
     workers = max(1, min(int(workers), cost.shape[0]))
-    owner = _deal(cost, workers) if workers > 1 else np.zeros(cost.shape[0], dtype=np.int64)
+    owner = _deal(cost, workers)
     tiles = np.argsort(owner, kind="stable")
     worker_start = np.zeros(workers + 1, dtype=np.int64)
     np.cumsum(np.bincount(owner, minlength=workers), out=worker_start[1:])
