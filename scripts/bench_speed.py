@@ -19,7 +19,9 @@ plus ``startup``: ``gscodec-shac decode`` of a 300-Gaussian fixture stream (star
 checkout too, right before ours (the baseline's stream is overwritten by ours, except the target
 stream, ``_target_baseline.gsc``; the two fixed encodes' sha256 are compared and printed), and
 prints the baseline's ratios beside ours. ``--repeat R`` runs each paired encode R times, the
-baseline first in odd rounds and ours first in even ones (the load of a shared machine drifts).
+baseline first in odd rounds and ours first in even ones (the load of a shared machine drifts),
+and each decode step R times (the median is printed; a fresh process's first touch of its pages
+varies with the kernel's memory state).
 Ratios (target / encode, target / the fixed encode of its own chosen settings, decode /
 spz_read, encode / spz_write) are printed; all rows go
 to ``OUT/bench_speed.json`` and ``.csv`` with the load average at each step.
@@ -214,8 +216,13 @@ def main(argv: list[str] | None = None) -> int:
         point = ["-r", args.rate_point, "--sh", "pca", "--er", "0.97", "--force"]
         for round_ in range(max(1, args.repeat)):
             enc = paired_encode(size, [*cli, "encode", str(ply), str(gsc), *point], gsc, ours_first=round_ % 2 == 1)
-        paired_step(size, "decode_arrays", [sys.executable, "-c", DECODE_ARRAYS, str(gsc)])
-        decode = paired_step(size, "decode", [*cli, "decode", str(gsc), str(dec), "--force"])
+        for step, command in (("decode_arrays", [sys.executable, "-c", DECODE_ARRAYS, str(gsc)]),
+                              ("decode", [*cli, "decode", str(gsc), str(dec), "--force"])):
+            runs = sorted((paired_step(size, step, command) for _ in range(max(1, args.repeat))),
+                          key=lambda row: row["wall_s"])
+            if len(runs) > 1:
+                print(f"{size:>5} {step} median wall {runs[len(runs) // 2]['wall_s']:.2f} s of {len(runs)} runs", flush=True)
+        decode = runs[len(runs) // 2]  # the median decode to PLY, for the ratio to splat-transform's read
         if not args.no_target:
             checkouts = ([("@baseline", args.baseline.resolve())] if args.baseline is not None else []) + [("", ROOT)]
             aimed = {suffix: args.out / size / f"s{size}_target{suffix.replace('@', '_')}.gsc"
