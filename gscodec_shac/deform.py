@@ -60,6 +60,24 @@ def positional_encoding(x: torch.Tensor, octaves: int) -> torch.Tensor:
     return torch.cat([x, torch.sin(scaled), torch.cos(scaled)], dim=-1)
 
 
+def fake_quantised_rows(weight: torch.Tensor, bits: int) -> torch.Tensor:
+    """``weight`` (out, in) on the per-row grid ``lo + code * step`` that ``encode --network-bits``
+    codes (``lo``/``step``: each row's minimum and (max - min) / (2^bits - 1), as
+    :func:`gscodec_shac.codec.deformation_fit.quantise_rows` before its float16 rounding), rounded
+    to the nearest grid point; the gradient passes straight through (quantisation-aware training)."""
+    return weight + (grid_values(weight, bits) - weight).detach()
+
+
+def grid_values(weight: torch.Tensor, bits: int) -> torch.Tensor:
+    """The nearest points of :func:`fake_quantised_rows`' per-row grid (no gradient)."""
+    with torch.no_grad():
+        top = (1 << bits) - 1
+        lo = weight.min(dim=1, keepdim=True).values
+        step = (weight.max(dim=1, keepdim=True).values - lo) / top
+        safe = torch.where(step > 0, step, torch.ones_like(step))
+        return lo + torch.round((weight - lo) / safe) * step
+
+
 class DeformNetwork(torch.nn.Module):
     """The deformation MLP (see the module docstring); ``forward(x (N, 3), t float) -> (dx, dq, ds)``."""
 
@@ -93,7 +111,8 @@ class DeformNetwork(torch.nn.Module):
         """(1, C) time feature: encoded ``t``, through the time net for D-NeRF."""
         code = positional_encoding(torch.tensor([[float(t)]], dtype=dtype), self.arch.t_freqs)
         if self.arch.time_net:
-            code = self.time_layers[1](torch.relu(self.time_layers[0](code)))
+            first, second = self.time_layers
+            code = self._linear(second, "time_layers.1", torch.relu(self._linear(first, "time_layers.0", code)))
         return code
 
     def forward(self, x: torch.Tensor, t: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -101,10 +120,29 @@ class DeformNetwork(torch.nn.Module):
         inputs = torch.cat([positional_encoding(x, self.arch.xyz_freqs), code.expand(x.shape[0], -1)], dim=1)
         h = inputs
         for i, layer in enumerate(self.layers):
-            h = torch.relu(layer(h))
+            h = torch.relu(self._linear(layer, f"layers.{i}", h))
             if i == self.skip:
                 h = torch.cat([inputs, h], dim=1)
-        return self.head_xyz(h), self.head_rot(h), self.head_scale(h)
+        return (self._linear(self.head_xyz, "head_xyz", h), self._linear(self.head_rot, "head_rot", h),
+                self._linear(self.head_scale, "head_scale", h))
+
+    # ------------------------------------------------------------------ quantisation-aware training
+    #: ``{"layers.0.weight": bits, ...}`` while the forward pass sees the weight matrices on their
+    #: coded per-row grids (:func:`fake_quantised_rows`); ``None``: the float weights.
+    grid_bits: dict[str, int] | None = None
+
+    def _linear(self, layer: torch.nn.Linear, name: str, h: torch.Tensor) -> torch.Tensor:
+        bits = None if self.grid_bits is None else self.grid_bits.get(name + ".weight")
+        if bits is None:
+            return layer(h)
+        return torch.nn.functional.linear(h, fake_quantised_rows(layer.weight, bits), layer.bias)
+
+    def snap_to_grid(self, grid_bits: dict[str, int]) -> None:
+        """Replace each named weight matrix by its values on its ``bits``-bit per-row grid (in place)."""
+        params = dict(self.named_parameters())
+        with torch.no_grad():
+            for name, bits in grid_bits.items():
+                params[name].copy_(grid_values(params[name], bits))
 
     # ------------------------------------------------------------------ weights as numpy
     def weights(self) -> dict[str, np.ndarray]:

@@ -660,7 +660,69 @@ def test_a_bad_training_setting_is_one_error_before_anything_is_read_or_made(tmp
     from gscodec_shac.cli import main
 
     out = tmp_path / "run"
-    for bad in (["--deform-lr-final", "0"], ["--iterations", "0"]):
+    for bad in (["--deform-lr-final", "0"], ["--iterations", "0"], ["--network-bits", "9"]):
         assert main(["train-dynamic", str(tmp_path / "no-scene"), str(out), "-q", *bad]) == 2
         err = capsys.readouterr().err
         assert err.startswith("error:") and bad[0] in err and "Traceback" not in err and not out.exists()
+
+
+# --------------------------------------------------------------------------- quantisation-aware training
+def test_fake_quantised_rows_are_the_coded_grid_with_a_straight_through_gradient() -> None:
+    """Training's grid is ``encode --network-bits``' per-row grid (``lo`` = row minimum, ``step`` = range / (2^B - 1),
+    nearest point), and its gradient is the identity (straight-through)."""
+    from gscodec_shac.deform import fake_quantised_rows
+
+    w = torch.from_numpy(np.random.default_rng(3).normal(size=(6, 40))).requires_grad_(True)
+    q = fake_quantised_rows(w, 4)
+    values = w.detach().numpy()
+    lo, hi = values.min(axis=1, keepdims=True), values.max(axis=1, keepdims=True)
+    step = (hi - lo) / 15
+    expected = lo + np.rint((values - lo) / step) * step
+    np.testing.assert_allclose(q.detach().numpy(), expected, rtol=0, atol=1e-12)
+    assert all(len(np.unique(row)) <= 16 for row in q.detach().numpy())
+    q.sum().backward()
+    np.testing.assert_array_equal(w.grad.numpy(), np.ones_like(values))
+
+
+def test_quantisation_aware_training_saves_a_network_its_coding_keeps(tmp_path: Path) -> None:
+    """``network_bits``: only the last ``network_grid_fraction`` of the iterations train through the grid; the saved
+    network is on it, so coding it at those bits changes it by far less than coding the float network does."""
+    from gscodec_shac.codec import deformation as coding
+    from gscodec_shac.codec.container import Bitstream
+    from gscodec_shac.train.dynamic import DynamicConfig, DynamicTrainer
+    from gscodec_shac.train.model import GaussianModel
+
+    capture, cloud = moving_capture()
+    model = GaussianModel({"means": cloud.means, "scales": cloud.scales, "quats": cloud.quats,
+                           "opacities": cloud.opacities, "sh_dc": cloud.sh_dc, "sh_rest": cloud.sh_rest}, 3)
+    config = DynamicConfig(iterations=20, warm_up=0, depth=2, width=32, densify_until=0, sh_interval=1000,
+                           lr_deform=3e-3, checkpoint_every=1000, network_bits=4, network_grid_fraction=0.5)
+    trainer = DynamicTrainer(capture, config, model=model)
+    seen = []
+    for _ in range(20):
+        trainer.step()
+        seen.append(trainer.net.grid_bits)
+    assert all(g is None for g in seen[:10]) and all(g == coding.encoder_grid(trainer.net.arch, 4) for g in seen[10:])
+    saved = trainer.dynamic_model()[0].net.weights()
+    trained = trainer.net.weights()  # the float weights the optimiser holds
+
+    def coding_change(weights: dict) -> float:
+        stream = Bitstream()
+        coding.add_deformation(stream, trainer.net.arch, weights, bits=coding.encoder_bits(trainer.net.arch, 4),
+                               means=cloud.means)
+        header = stream.header[coding.CHUNK]
+        raw = coding.zlib.decompress(stream.chunk(coding.CHUNK).data)
+        back = coding.decode_weights(raw, trainer.net.arch, header["dtype"], tuple(header["bits"]))
+        return max(float(np.abs(back[k] - weights[k]).max()) for k in weights if weights[k].ndim == 2)
+
+    for name, bits in coding.encoder_grid(trainer.net.arch, 4).items():
+        assert all(len(np.unique(row)) <= 1 << bits for row in saved[name])
+    assert coding_change(saved) < 0.05 * coding_change(trained)
+
+
+def test_network_bits_for_training_outside_2_to_8_are_refused() -> None:
+    from gscodec_shac.train.dynamic import DynamicConfig, DynamicTrainError
+
+    for bits in (1, 9, 16):
+        with pytest.raises(DynamicTrainError, match="--network-bits"):
+            DynamicConfig(network_bits=bits).validate()

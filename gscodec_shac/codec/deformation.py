@@ -21,8 +21,10 @@ by the header entry ``deformation`` = ``{"arch": {...}, "dtype": ..., ["bits": B
   deformation directly (per-layer sensitivity in docs/dynamic.md). A list whose values are all
   equal is written as the single ``B`` of format 2.1 (the same bytes).
 
-The encoder picks the codes on each row's grid by quantisation-aware rounding when it has the
-canonical centres (:mod:`.deformation_fit`); the decoder does not need to know.
+The encoder picks the codes on each row's grid by output-aware rounding when it has the
+canonical centres (:mod:`.deformation_fit`), unless the weights already lie on the grid (a network
+trained with ``train-dynamic --network-bits``, :func:`on_grid`): those are coded as they are. The
+decoder does not need to know.
 
 The chunk records ``encoding: zlib`` and ``raw_size`` (:func:`raw_size`, checked by
 :mod:`gscodec_shac.codec.header`). The stream needs the container feature ``deformation``
@@ -83,6 +85,14 @@ def encoder_bits(arch: DeformArch, bits: int) -> Bits:
     return tuple(HEAD_BITS if name in HEADS else bits for name in _matrices(arch))
 
 
+def encoder_grid(arch: DeformArch, bits: int) -> dict[str, int]:
+    """``{matrix name: bits}`` that ``--network-bits bits`` (2..8) codes each weight matrix with
+    (what quantisation-aware training trains against, :mod:`gscodec_shac.train.dynamic`)."""
+    if dtype_of(bits) != "uint8":
+        raise ValueError(f"network bits for a grid must be {MIN_BITS}..{MAX_BITS}, got {bits!r}")
+    return dict(zip(_matrices(arch), matrix_bits(arch, encoder_bits(arch, bits))))
+
+
 def raw_size(arch: DeformArch, dtype: str, bits: Bits = 16) -> int:
     """Bytes of the inflated chunk for ``arch`` in form ``dtype`` with ``bits`` (from the sizes alone)."""
     if dtype == "float16":
@@ -106,7 +116,7 @@ def add_deformation(stream: Bitstream, arch: DeformArch, weights: dict[str, np.n
         if np.shape(weights[name]) != shape:
             raise ValueError(f"deformation weight {name} has shape {np.shape(weights[name])}, expected {shape}")
     fitted: dict = {}
-    if dtype == "uint8" and means is not None and len(means):
+    if dtype == "uint8" and means is not None and len(means) and not on_grid(arch, weights, per_matrix):
 
         codes_of, biases = fitted_codes(arch, weights, means, dict(zip(_matrices(arch), per_matrix)))
         fitted, weights = codes_of, {**weights, **biases}
@@ -133,6 +143,25 @@ def add_deformation(stream: Bitstream, arch: DeformArch, weights: dict[str, np.n
     if not uniform:
         stream.require(MIXED_FEATURE)
     return len(data)
+
+
+#: How far (in grid steps) a weight may sit from its row's grid point and still count as on it.
+ON_GRID_TOLERANCE = 1e-3
+
+
+def on_grid(arch: DeformArch, weights: dict[str, np.ndarray], per_matrix: tuple[int, ...]) -> bool:
+    """True when every weight matrix already lies on its per-row grid ``min + k (max - min) / (2^B - 1)``
+    (a network trained with ``train-dynamic --network-bits``): plain rounding then codes what was
+    trained, and the output-aware rounding would only move codes to compensate for errors that are
+    not there."""
+    for (name, _), bits in zip(_matrices(arch).items(), per_matrix):
+        value = np.asarray(weights[name], dtype=np.float64)
+        lo = value.min(axis=1, keepdims=True)
+        step = (value.max(axis=1, keepdims=True) - lo) / ((1 << bits) - 1)
+        position = (value - lo) / np.where(step > 0, step, 1.0)
+        if np.any(np.abs(position - np.rint(position)) > ON_GRID_TOLERANCE):
+            return False
+    return True
 
 
 def pack_codes(parts: list[tuple[np.ndarray, int]]) -> bytes:

@@ -51,6 +51,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="the deformation network's learning rate at the last iteration (it decays log-linearly "
                         "from 8e-4; default 1.6e-6, the reference's over 40000 iterations; a short run learns the "
                         "motion better with a higher floor: docs/dynamic.md)")
+    parser.add_argument("--network-bits", type=int, metavar="B",
+                        help="quantisation-aware training: the last 10%% of the iterations train the network through "
+                        "the B-bit grid (2-8) that `encode --network-bits B` codes, and the saved network is on that "
+                        "grid, so coding it at B bits changes nothing (default: off, float weights)")
     for name, text in (("warm-up", "static warm-up iterations (reference 3000 of 40000)"),
                        ("densify-from", "first densification iteration (reference 500)"),
                        ("densify-until", "last densification iteration (reference 15000)"),
@@ -102,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
             densify_from=args.densify_from, densify_until=args.densify_until,
             densify_interval=args.densify_interval, opacity_reset_interval=args.opacity_reset_interval,
             sh_interval=args.sh_interval, checkpoint_every=args.checkpoint_every, lr_deform_final=args.deform_lr_final,
+            network_bits=args.network_bits,
         )
         config.validate()
     scene = Path(args.scene)

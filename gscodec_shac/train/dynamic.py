@@ -125,6 +125,10 @@ class DynamicConfig:
     means_decay_fraction: float = 0.75
     lr_deform: float = 8e-4
     lr_deform_final: float = 1.6e-6
+    #: Quantisation-aware training: the last ``network_grid_fraction`` of the iterations see the
+    #: network's matrices on the grid ``encode --network-bits network_bits`` codes (None: off).
+    network_bits: int | None = None
+    network_grid_fraction: float = 0.1
     lr_sh_dc: float = 2.5e-3
     lr_sh_rest: float = 2.5e-3 / 20.0
     lr_opacity: float = 0.05
@@ -158,6 +162,11 @@ class DynamicConfig:
             raise DynamicTrainError(f"--net-depth must be >= 2 and --net-width >= 1, got {self.depth}/{self.width}")
         if not 0.0 < self.lr_deform_final <= self.lr_deform:
             raise DynamicTrainError(f"--deform-lr-final must be in (0, {self.lr_deform:g}], got {self.lr_deform_final:g}")
+        if self.network_bits is not None and not 2 <= self.network_bits <= 8:
+            raise DynamicTrainError(f"--network-bits must be 2-8 (the coded grid to train against), got {self.network_bits}")
+        if not 0.0 < self.network_grid_fraction <= 1.0:
+            raise DynamicTrainError(f"the quantisation-aware share of the iterations must be in (0, 1], "
+                                    f"got {self.network_grid_fraction:g}")
         for key, value in self.resolved().items():
             if value < 0:
                 raise DynamicTrainError(f"schedule value {key} must be >= 0, got {value}")
@@ -262,6 +271,18 @@ class DynamicTrainer:
     def deforming(self, it: int) -> bool:
         return it > self.schedule["warm_up"]
 
+    def network_grid(self, it: int) -> dict[str, int] | None:
+        """The per-matrix bits the network trains against at iteration ``it`` (quantisation-aware
+        phase: the last ``network_grid_fraction`` of the run, once the network is in use), else None."""
+        c = self.config
+        if c.network_bits is None or not self.deforming(it):
+            return None
+        if it <= c.iterations - round(c.network_grid_fraction * c.iterations):
+            return None
+        from gscodec_shac.codec.deformation import encoder_grid
+
+        return encoder_grid(self.net.arch, c.network_bits)
+
     # ------------------------------------------------------------------ one iteration
     def step(self) -> DynStep:
         start = time.perf_counter()
@@ -284,6 +305,7 @@ class DynamicTrainer:
         else:
             rest = p["sh_rest"][:, :n_active]
         deform = self.deforming(it)
+        self.net.grid_bits = self.network_grid(it)
         if deform:
             scales_t = torch.from_numpy(p["scales"]).requires_grad_(True)
             quats_t = torch.from_numpy(p["quats"]).requires_grad_(True)
@@ -421,6 +443,9 @@ class DynamicTrainer:
                 for head in (net.head_xyz, net.head_rot, net.head_scale):
                     head.weight.zero_()
                     head.bias.zero_()
+        grid = self.network_grid(self.iteration)
+        if grid is not None:  # the network the last iterations trained: its weights on the coded grid
+            net.snap_to_grid(grid)
         return DynamicModel(cloud, net), stage
 
     def evaluate(self, progress: bool = False) -> dict[str, Any]:
