@@ -726,3 +726,29 @@ def test_network_bits_for_training_outside_2_to_8_are_refused() -> None:
     for bits in (1, 9, 16):
         with pytest.raises(DynamicTrainError, match="--network-bits"):
             DynamicConfig(network_bits=bits).validate()
+
+
+def test_encode_codes_a_network_trained_on_a_grid_at_its_bits(tmp_path: Path, dynamic_dir: Path) -> None:
+    """Without ``--network-bits``, ``encode`` codes a network whose matrices lie on the 4-bit grid (what
+    ``train-dynamic --network-bits 4`` saves) at 4 bits, heads at 8, exactly; a float network at the default 8."""
+    from gscodec_shac.codec import decode_file, encode_file
+    from gscodec_shac.codec import deformation as coding
+    from gscodec_shac.codec.container import Bitstream
+    from gscodec_shac.codec.header import read_header
+    from gscodec_shac.deform import load_dynamic_model
+
+    model = load_dynamic_model(dynamic_dir)
+    arch = model.arch
+    float_bits = read_header(Bitstream.read(Path(encode_file(dynamic_dir, tmp_path / "f.gsc", "gsplat_png")["output"])))
+    assert float_bits.deformation.bits == 8
+    model.net.snap_to_grid(coding.encoder_grid(arch, 4))
+    gridded = save_dynamic_model(tmp_path / "gridded", model)
+    encode_file(gridded, tmp_path / "g.gsc", "gsplat_png")
+    view = read_header(Bitstream.read(tmp_path / "g.gsc"))
+    assert view.deformation.bits == coding.matrix_bits(arch, coding.encoder_bits(arch, 4))
+    decode_file(tmp_path / "g.gsc", tmp_path / "back")
+    back = load_dynamic_model(tmp_path / "back").net.weights()
+    for name, value in model.net.weights().items():
+        if value.ndim == 2:  # on the grid up to the float16 rounding of each row's lo and step
+            step = (value.max(axis=1) - value.min(axis=1)) / 255
+            assert np.all(np.abs(back[name] - value) <= np.maximum(step, 1e-6)[:, None])

@@ -164,6 +164,16 @@ def on_grid(arch: DeformArch, weights: dict[str, np.ndarray], per_matrix: tuple[
     return True
 
 
+def trained_grid_bits(arch: DeformArch, weights: dict[str, np.ndarray]) -> int | None:
+    """The fewest bits (2..7) whose encoder grid every weight matrix already lies on (a network
+    trained with ``train-dynamic --network-bits``), else None: what ``encode`` codes such a network
+    with when ``--network-bits`` is not given."""
+    for bits in range(MIN_BITS, MAX_BITS):
+        if on_grid(arch, weights, matrix_bits(arch, encoder_bits(arch, bits))):
+            return bits
+    return None
+
+
 def pack_codes(parts: list[tuple[np.ndarray, int]]) -> bytes:
     """Each ``(codes, bits)`` part (uint8 codes, each < 2^bits) at ``bits`` bits per code, most
     significant bit first, all parts in one bit string (zero-padded to whole bytes)."""

@@ -62,7 +62,8 @@ def encode_file(
     codecs' speed preset (x265's ``preset`` option). ``choose_sh``, when given, picks
     ``(stage, params)`` from the model read (the default encode, :mod:`.defaults`);
     ``network_bits`` how a dynamic model's network is stored (16: float16, 2..8: quantised,
-    the output heads at 8 bits below 8; default 8, :mod:`.deformation`). ``keep_share`` overrides
+    the output heads at 8 bits below 8; default: the bits of the grid a network trained with
+    ``train-dynamic --network-bits`` lies on, else 8, :mod:`.deformation`). ``keep_share`` overrides
     the rate point's importance pruning (:mod:`.importance`), measured on ``cameras`` (any camera
     file) or else orbit views around ``up``; ``dc_only_share`` the rate point's share of DC-only
     Gaussians (or ``dc_only_energy`` its energy bar, ``dc_only_weight`` its weight, :mod:`.sh_degree`);
@@ -101,10 +102,12 @@ def encode_file(
     means = cloud.means if dynamic is not None else None  # the network's rounding is fitted on them
     stream = encoder.encode(cloud, release_input=True)  # the model is freed once read (memory, issue 25)
     if dynamic is not None:
-        from gscodec_shac.codec.deformation import DEFAULT_BITS, encoder_bits
+        from gscodec_shac.codec.deformation import DEFAULT_BITS, encoder_bits, trained_grid_bits
 
-        bits = encoder_bits(dynamic.arch, DEFAULT_BITS if network_bits is None else network_bits)
-        add_deformation(stream, dynamic.arch, dynamic.net.weights(), bits, means=means)
+        weights = dynamic.net.weights()
+        if network_bits is None:  # a network trained on a coarser grid is coded on it, else the default
+            network_bits = trained_grid_bits(dynamic.arch, weights) or DEFAULT_BITS
+        add_deformation(stream, dynamic.arch, weights, encoder_bits(dynamic.arch, network_bits), means=means)
     with inputs_protected(in_ply, *([cameras] if cameras is not None else [])):
         size = stream.write(out_gsc)
     return {
