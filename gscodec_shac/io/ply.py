@@ -244,10 +244,14 @@ def write_ply(path: str | os.PathLike, cloud: GaussianCloud, *, write_normals: b
     element = plyfile.PlyElement.describe(first, "vertex")
     header = plyfile.PlyData([element], text=False, byte_order="<").header
     header = header.replace("\nelement vertex 0\n", f"\nelement vertex {n}\n", 1) + "\n"
+    block_rows = max(1, int(block_rows))
+    buffer = np.empty(min(block_rows, n), dtype=first.dtype)  # one block's rows, reused: no fresh pages per block
     with atomic_output(path, error=PlyFormatError) as handle:
         handle.write(header.encode("ascii"))
-        for start in range(0, n, max(1, int(block_rows))):
-            handle.write(_structured_rows(cloud, slice(start, start + block_rows), write_normals).tobytes())
+        for start in range(0, n, block_rows):
+            rows = _structured_rows(cloud, slice(start, start + block_rows), write_normals,
+                                    out=buffer[: min(block_rows, n - start)])
+            handle.write(rows.view(np.uint8).data)
 
 
 def cloud_to_structured(cloud: GaussianCloud, *, write_normals: bool = True) -> np.ndarray:
@@ -255,11 +259,12 @@ def cloud_to_structured(cloud: GaussianCloud, *, write_normals: bool = True) -> 
     return _structured_rows(cloud, slice(0, cloud.num_gaussians), write_normals)
 
 
-def _structured_rows(cloud: GaussianCloud, rows: slice, write_normals: bool) -> np.ndarray:
-    """Rows ``rows`` of the PLY vertex table of ``cloud`` as a structured array (Inria order)."""
+def _structured_rows(cloud: GaussianCloud, rows: slice, write_normals: bool, out: np.ndarray | None = None) -> np.ndarray:
+    """Rows ``rows`` of the PLY vertex table of ``cloud`` as a structured array (Inria order), in
+    ``out`` when given (a table of the same fields and length)."""
     n = len(range(cloud.num_gaussians)[rows])
     rest = cloud.sh_rest[rows]
-    f_rest = np.ascontiguousarray(rest.transpose(0, 2, 1)).reshape(n, 3 * rest.shape[1])  # Inria channel-major
+    n_rest = rest.shape[1]
     means, sh_dc, scales, quats = cloud.means[rows], cloud.sh_dc[rows], cloud.scales[rows], cloud.quats[rows]
     columns: list[tuple[str, np.ndarray]] = [("x", means[:, 0]), ("y", means[:, 1]), ("z", means[:, 2])]
     if all(k in cloud.extra for k in _NORMALS):
@@ -267,7 +272,8 @@ def _structured_rows(cloud: GaussianCloud, rows: slice, write_normals: bool) -> 
     elif write_normals:
         columns += [(k, np.zeros(n, dtype=np.float32)) for k in _NORMALS]
     columns += [(f"f_dc_{i}", sh_dc[:, i]) for i in range(3)]
-    columns += [(f"f_rest_{i}", f_rest[:, i]) for i in range(f_rest.shape[1])]
+    # Inria channel-major: f_rest_{c * n_rest + k} is coefficient k of channel c
+    columns += [(f"f_rest_{c * n_rest + k}", rest[:, k, c]) for c in range(3) for k in range(n_rest)]
     columns += [("opacity", cloud.opacities[rows])]
     columns += [(f"scale_{i}", scales[:, i]) for i in range(3)]
     columns += [(f"rot_{i}", quats[:, i]) for i in range(4)]
@@ -278,8 +284,8 @@ def _structured_rows(cloud: GaussianCloud, rows: slice, write_normals: bool) -> 
         if value.ndim != 1:
             raise PlyFormatError(f"extra property {key!r} has shape {value.shape}; PLY scalars must be 1-D")
         columns.append((key, value[rows]))
-    dtype = [(name, _ply_dtype(values)) for name, values in columns]
-    table = np.empty(n, dtype=dtype)
+    dtype = np.dtype([(name, _ply_dtype(values)) for name, values in columns])
+    table = out if out is not None and out.dtype == dtype and len(out) == n else np.empty(n, dtype=dtype)
     for name, values in columns:
         table[name] = values
     return table
