@@ -217,17 +217,20 @@ def main(argv: list[str] | None = None) -> int:
         point = ["-r", args.rate_point, "--sh", "pca", "--er", "0.97", "--force"]
         for round_ in range(max(1, args.repeat)):
             enc = paired_encode(size, [*cli, "encode", str(ply), str(gsc), *point], gsc, ours_first=round_ % 2 == 1)
+        median: dict[str, dict] = {}  # per decode step, the run of median wall time
         for step, command in (("decode_arrays", [sys.executable, "-c", DECODE_ARRAYS, str(gsc)]),
                               ("decode", [*cli, "decode", str(gsc), str(dec), "--force"])):
             runs = sorted((paired_step(size, step, command) for _ in range(max(1, args.repeat))),
                           key=lambda row: row["wall_s"])
+            median[step] = runs[len(runs) // 2]
             if len(runs) > 1:
-                print(f"{size:>5} {step} median wall {runs[len(runs) // 2]['wall_s']:.2f} s of {len(runs)} runs", flush=True)
-            if step == "decode_arrays":  # the Decoder call alone, without the interpreter's start and imports
-                calls = sorted(float(row["output"].rsplit("decode ", 1)[1].split()[0]) for row in runs)
-                print(f"{size:>5} decode_arrays: the decode call {calls[len(calls) // 2]:.2f} s (median of {len(calls)})",
-                      flush=True)
-        decode = runs[len(runs) // 2]  # the median decode to PLY, for the ratio to splat-transform's read
+                print(f"{size:>5} {step} median wall {median[step]['wall_s']:.2f} s of {len(runs)} runs", flush=True)
+        # the Decoder call alone, without the interpreter's start and imports (DECODE_ARRAYS prints both)
+        calls = sorted(float(row["output"].rsplit("decode ", 1)[1].split()[0])
+                       for row in rows if row["size"] == size and row["step"] == "decode_arrays")
+        print(f"{size:>5} decode_arrays: the decode call {calls[len(calls) // 2]:.2f} s (median of {len(calls)})",
+              flush=True)
+        decode = median["decode"]  # for the ratio to splat-transform's read
         if not args.no_target:
             checkouts = ([("@baseline", args.baseline.resolve())] if args.baseline is not None else []) + [("", ROOT)]
             aimed = {suffix: args.out / size / f"s{size}_target{suffix.replace('@', '_')}.gsc"

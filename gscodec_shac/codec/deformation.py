@@ -116,9 +116,9 @@ def add_deformation(stream: Bitstream, arch: DeformArch, weights: dict[str, np.n
         if np.shape(weights[name]) != shape:
             raise ValueError(f"deformation weight {name} has shape {np.shape(weights[name])}, expected {shape}")
     fitted: dict = {}
-    if dtype == "uint8" and means is not None and len(means) and not on_grid(arch, weights, per_matrix):
-
-        codes_of, biases = fitted_codes(arch, weights, means, dict(zip(_matrices(arch), per_matrix)))
+    grid = dict(zip(_matrices(arch), per_matrix))
+    if dtype == "uint8" and means is not None and len(means) and not on_grid(weights, grid):
+        codes_of, biases = fitted_codes(arch, weights, means, grid)
         fitted, weights = codes_of, {**weights, **biases}
     halves, packed, widths = [], [], iter(per_matrix)
     for name, shape in weight_shapes(arch):
@@ -149,12 +149,12 @@ def add_deformation(stream: Bitstream, arch: DeformArch, weights: dict[str, np.n
 ON_GRID_TOLERANCE = 1e-3
 
 
-def on_grid(arch: DeformArch, weights: dict[str, np.ndarray], per_matrix: tuple[int, ...]) -> bool:
-    """True when every weight matrix already lies on its per-row grid ``min + k (max - min) / (2^B - 1)``
-    (a network trained with ``train-dynamic --network-bits``): plain rounding then codes what was
-    trained, and the output-aware rounding would only move codes to compensate for errors that are
-    not there."""
-    for (name, _), bits in zip(_matrices(arch).items(), per_matrix):
+def on_grid(weights: dict[str, np.ndarray], grid: dict[str, int]) -> bool:
+    """True when every matrix ``name`` of ``grid`` already lies on its per-row grid
+    ``min + k (max - min) / (2^B - 1)``, ``B = grid[name]`` (a network trained with ``train-dynamic
+    --network-bits``): plain rounding then codes what was trained, and the output-aware rounding
+    would only move codes to compensate for errors that are not there."""
+    for name, bits in grid.items():
         value = np.asarray(weights[name], dtype=np.float64)
         lo = value.min(axis=1, keepdims=True)
         step = (value.max(axis=1, keepdims=True) - lo) / ((1 << bits) - 1)
@@ -169,7 +169,7 @@ def trained_grid_bits(arch: DeformArch, weights: dict[str, np.ndarray]) -> int |
     trained with ``train-dynamic --network-bits``), else None: what ``encode`` codes such a network
     with when ``--network-bits`` is not given."""
     for bits in range(MIN_BITS, MAX_BITS):
-        if on_grid(arch, weights, matrix_bits(arch, encoder_bits(arch, bits))):
+        if on_grid(weights, encoder_grid(arch, bits)):
             return bits
     return None
 
