@@ -338,8 +338,8 @@ def test_gsc_round_trip_of_a_dynamic_model(tmp_path: Path, dynamic_dir: Path, bi
                                | ({"deformation_mixed_bits"} if mixed else set()))
     view = read_header(stream)
     assert view.deformation is not None and view.deformation.arch == DeformArch(depth=4, width=32)
-    # below 8 bits the three heads keep 8 (the last three matrices)
-    per_matrix = (bits,) * 6 + (8,) * 3 if mixed else bits  # 2 time-net, 4 hidden, 3 head matrices
+    # below 8 bits the time net's first layer and the three heads (the last three matrices) keep 8
+    per_matrix = (8,) + (bits,) * 5 + (8,) * 3 if mixed else bits  # 2 time-net, 4 hidden, 3 head matrices
     assert (view.deformation.dtype, view.deformation.bits) == (("uint8", per_matrix) if quantised else ("float16", 16))
     net_bytes = view.chunk_bytes["deformation"]
     assert 0 < net_bytes <= 2 * view.deformation.weights + 64
@@ -465,7 +465,7 @@ def test_a_2_1_decoder_refuses_mixed_network_bits(tmp_path: Path, dynamic_dir: P
     encode_file(dynamic_dir, tmp_path / "m.gsc", "gsplat_png", network_bits=4)
     encode_file(dynamic_dir, tmp_path / "u.gsc", "gsplat_png", network_bits=8)
     assert main(["info", str(tmp_path / "m.gsc")]) == 0
-    assert "4-bit per-row quantised, heads 8-bit)" in capsys.readouterr().out
+    assert "per-row quantised, bits per matrix 8,4,4,4,4,4,8,8,8)" in capsys.readouterr().out
     monkeypatch.delitem(container.FEATURES, "deformation_mixed_bits")
     with pytest.raises(BitstreamError, match="needs deformation_mixed_bits, which this version"):
         container.Bitstream.read(tmp_path / "m.gsc")

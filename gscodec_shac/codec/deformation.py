@@ -16,9 +16,12 @@ by the header entry ``deformation`` = ``{"arch": {...}, "dtype": ..., ["bits": B
   codes lose up to 14% on 4-6-bit codes stored one per byte (measured on a trained network,
   docs/dynamic.md).
 * the same with ``bits`` a list, one ``B`` per matrix in order (format 2.2, feature
-  ``deformation_mixed_bits``): the encoder keeps the three small output heads at
-  :data:`HEAD_BITS` when the other matrices get fewer, since a head's rounding error reaches the
-  deformation directly (per-layer sensitivity in docs/dynamic.md). A list whose values are all
+  ``deformation_mixed_bits``): the encoder keeps the three small output heads and the time
+  network's first layer (:data:`PROTECTED`) at :data:`HEAD_BITS` when the other matrices get
+  fewer: a head's rounding error reaches the deformation directly, and every row of the time
+  layer feeds every Gaussian's time code (per-layer sensitivity in docs/dynamic.md; together 3.3%
+  of the weights). Streams written when only the heads were kept decode the same way (the list
+  is in the header). A list whose values are all
   equal is written as the single ``B`` of format 2.1 (the same bytes).
 
 The encoder picks the codes on each row's grid by output-aware rounding when it has the
@@ -54,6 +57,9 @@ DEFAULT_BITS = 8
 #: Bits of the output heads' matrices when the others get fewer (format 2.2).
 HEAD_BITS = 8
 HEADS = ("head_xyz.weight", "head_rot.weight", "head_scale.weight")
+#: Matrices kept at :data:`HEAD_BITS` below it: the heads and the time network's first layer
+#: (256 x 13 weights; at 4 bits it alone cost 0.45 dB on standup, docs/dynamic.md).
+PROTECTED = HEADS + ("time_layers.0.weight",)
 Bits = int | tuple[int, ...]
 
 
@@ -77,12 +83,13 @@ def matrix_bits(arch: DeformArch, bits: Bits) -> tuple[int, ...]:
 
 
 def encoder_bits(arch: DeformArch, bits: int) -> Bits:
-    """What the encoder writes for ``--network-bits bits``: the heads at :data:`HEAD_BITS` when ``bits``
-    is lower (a tuple, format 2.2), else ``bits`` (16: float16; 8: uniform, format 2.1)."""
+    """What the encoder writes for ``--network-bits bits``: the :data:`PROTECTED` matrices at
+    :data:`HEAD_BITS` when ``bits`` is lower (a tuple, format 2.2), else ``bits`` (16: float16; 8:
+    uniform, format 2.1)."""
     dtype_of(bits)
     if bits == 16 or bits >= HEAD_BITS:
         return bits
-    return tuple(HEAD_BITS if name in HEADS else bits for name in _matrices(arch))
+    return tuple(HEAD_BITS if name in PROTECTED else bits for name in _matrices(arch))
 
 
 def encoder_grid(arch: DeformArch, bits: int) -> dict[str, int]:

@@ -126,9 +126,8 @@ def _deformation_line(info: dict[str, Any]) -> str:
     dtype = info.get("dtype", "float16")
     bits = info.get("bits")
     form = f"{bits}-bit per-row quantised" if dtype == "uint8" else dtype
-    if isinstance(bits, (list, tuple)):  # one per matrix (format 2.2): the output heads are the last three
-        body, heads = ("/".join(map(str, sorted(set(part)))) for part in (bits[:-3], bits[-3:]))
-        form = f"{body}-bit per-row quantised, heads {heads}-bit"
+    if isinstance(bits, (list, tuple)):  # one per matrix in state_dict order (format 2.2)
+        form = f"per-row quantised, bits per matrix {','.join(map(str, bits))}"
     stored = f"{info['bytes']:,} bytes ({form})" if "bytes" in info else \
         f"{info['float32_bytes']:,} bytes as float32"
     return (f"deformation       MLP {arch['depth']}x{arch['width']}"
