@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -16,6 +18,7 @@ from gscodec_shac.codec.rate_control import (
     RateController,
     Target,
     TargetUnreachableError,
+    _key,
     make_target,
     parse_size,
 )
@@ -232,3 +235,40 @@ def test_the_probe_has_a_fixed_size_whatever_the_clouds(monkeypatch):
         cloud = make_synthetic_scene(n, seed=1, n_cameras=1, width=8, height=8).cloud
         rows = rate_control._probe_rows(cloud)
         assert rows.size == 500 and np.unique(rows).size == 500
+
+
+def test_the_first_plan_spends_the_gap_below_the_next_hull_point(controller, small_cloud):
+    """The hull's points lie far apart; single QP steps fill the plan up to the window's middle."""
+    target = Target("bytes", 200 * small_cloud.num_gaussians / 8)
+    middle = target.value * (1 - SIZE_TOLERANCE / 2)
+    hull_point = controller.plan(Target("bytes", middle))
+    first = controller._first_plan(target)
+    assert hull_point.predicted_bytes <= first.predicted_bytes <= middle
+    assert controller._step(first, cheaper=False, limit=middle) is None  # no single step fits any more
+
+
+@pytest.mark.parametrize("share, cost, kept", [(0.95, math.inf, True), (0.70, math.inf, False), (0.95, -1.0, False)])
+def test_near_a_size_target_the_next_plan_keeps_the_sh_base_qp(controller, small_cloud, monkeypatch, share, cost, kept):
+    """Within FINE_BAND of the target the correction moves the other attributes' QPs (one chunk each),
+    not the water-filled SH features' base QP (every SH chunk), unless that costs more than
+    FINE_PSNR_COST of predicted PSNR; further away every QP may move."""
+    from gscodec_shac.codec import rate_control
+
+    monkeypatch.setattr(rate_control, "FINE_PSNR_COST", cost)
+    target = Target("bytes", 200 * small_cloud.num_gaussians / 8)
+    limit = target.value * (1 - SIZE_TOLERANCE / 2)
+    controller._exact = {}
+    plan = controller._first_plan(target)
+    try:  # as if an encode of the plan had measured `share` of each attribute's predicted bytes
+        controller._exact = {name: {plan.settings[name]: share * controller._bytes(name, plan.settings[name])}
+                             for name in controller.models_ if name != "positions"}
+        nxt = controller._next_for_size(plan, int(share * plan.predicted_bytes), target, {_key(plan)})
+        free = controller._adjust(plan, limit=limit)
+    finally:
+        controller._exact = {}
+    assert nxt is not None and share * plan.predicted_bytes < nxt.predicted_bytes <= limit
+    assert (1 - share <= rate_control.FINE_BAND) == (share == 0.95)
+    if kept:
+        assert nxt.settings["sh"] == plan.settings["sh"] and nxt.settings != plan.settings
+    else:
+        assert nxt.settings == free.settings

@@ -76,7 +76,9 @@ from gscodec_shac.shac.base import STAGES, ShStage, make_stage
 #: The template rate point of SHAC-auto.
 TEMPLATE = "shac_auto:template"
 #: Bumped when the controller's choices change for the same input (RD sweeps key their rows on it).
-VERSION = 7
+#: Version 8 (the PSNR target's chain, docs/rate_control.md) kept the constant at 7; 9 is the size
+#: target's fill of the first plan and its SH-keeping corrections (:data:`FINE_BAND`).
+VERSION = 9
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
 #: QPs at which the probe is encoded; the models interpolate between them (and extrapolate).
@@ -99,6 +101,13 @@ CALIBRATION_VIEWS = 6
 CALIBRATION_WIDTH = 192
 #: A size target is met when the file is within this share under it ...
 SIZE_TOLERANCE = 0.03
+#: After an encode this close to a size target (a share of it), the next moves keep the SH features'
+#: base QP: a step of it re-codes every water-filled SH chunk and moves the file by about the
+#: window's width, where the other attributes' steps re-code one chunk each (version 9) ...
+FINE_BAND = 0.08
+#: ... unless that costs more than this many dB of predicted PSNR against moving every QP (at high
+#: rates the other attributes' steps can cost dB where one SH step costs little: chair at 220 bits/G).
+FINE_PSNR_COST = 0.05
 #: ... a PSNR target when the measured PSNR is within this many dB above it.
 PSNR_WINDOW = 0.3
 #: Bounds of the slope of measured against predicted PSNR between the encodes on either side of
@@ -726,7 +735,7 @@ class RateController:
                 if (1 - SIZE_TOLERANCE) * target.value <= size <= target.value:
                     plan = None
                 else:
-                    plan = self._adjust(plan, limit=target.value * (1 - SIZE_TOLERANCE / 2))
+                    plan = self._next_for_size(plan, size, target, tried)
             else:
                 measured = self.measured_psnr(stream)
                 trials[-1]["measured_psnr"] = measured
@@ -748,12 +757,32 @@ class RateController:
         return Outcome(stream, plan, target, len(trials), dict(self.seconds_), measured, trials)
 
     def _first_plan(self, target: Target) -> Plan:
-        """The hull's plan for ``target``, aimed at the middle of its window when it can."""
+        """The hull's plan for ``target``, aimed at the middle of its window when it can; for a size,
+        the bytes between that hull point and the next are spent by single QP steps (:meth:`_adjust`;
+        version 9: the hull's points can lie 10% apart, wider than the window)."""
         middle = target.value + PSNR_WINDOW / 2 if target.kind == "psnr" else target.value * (1 - SIZE_TOLERANCE / 2)
         try:
-            return self.plan(Target(target.kind, middle))
+            plan = self.plan(Target(target.kind, middle))
         except TargetUnreachableError:
             return self.plan(target)
+        if target.kind == "bytes":
+            plan = self._adjust(plan, limit=middle) or plan
+        return plan
+
+    def _next_for_size(self, plan: Plan, size: int, target: Target, tried: set[tuple]) -> Plan | None:
+        """The next plan after an encode of ``size`` bytes missed a size target's window: single QP
+        steps from ``plan`` with the corrected rate model (:meth:`_adjust`), keeping the SH features'
+        base QP when the encode came within :data:`FINE_BAND` of the target, that reaches an untried
+        plan and its predicted PSNR is within :data:`FINE_PSNR_COST` of the plan with every QP free
+        (each step then re-codes one attribute's chunks, not every SH chunk)."""
+        limit = target.value * (1 - SIZE_TOLERANCE / 2)
+        free = self._adjust(plan, limit=limit)
+        if abs(size - target.value) <= FINE_BAND * target.value:
+            fine = self._adjust(plan, limit=limit, frozen=("sh",))
+            if fine is not None and _key(fine) not in tried and (
+                    free is None or fine.predicted_psnr >= free.predicted_psnr - FINE_PSNR_COST):
+                return fine
+        return free
 
     def _encode(self, plan: Plan, target: Target) -> Bitstream:
         """One real encode of ``plan``; the header records the target (the settings are in its rate point)."""
@@ -833,27 +862,28 @@ class RateController:
                 break
         return out
 
-    def _adjust(self, plan: Plan, *, limit: float) -> Plan | None:
-        """The QPs moved step by step (position bits fixed) until the corrected prediction is within
-        ``limit`` bytes, as closely as possible from below."""
+    def _adjust(self, plan: Plan, *, limit: float, frozen: Sequence[str] = ()) -> Plan | None:
+        """The QPs moved step by step (position bits and the ``frozen`` attributes fixed) until the
+        corrected prediction is within ``limit`` bytes, as closely as possible from below."""
         current = self._predict(plan.settings)
         while current.predicted_bytes > limit:  # too big
-            step = self._step(current, cheaper=True)
+            step = self._step(current, cheaper=True, frozen=frozen)
             if step is None:
                 return None
             current = step
         while True:  # spend what is left
-            step = self._step(current, cheaper=False, limit=limit)
+            step = self._step(current, cheaper=False, limit=limit, frozen=frozen)
             if step is None:
                 return current
             current = step
 
-    def _step(self, plan: Plan, *, cheaper: bool, limit: float = math.inf) -> Plan | None:
-        """One QP step of one attribute: the least error added per byte saved (``cheaper``), or the
-        most error removed per byte spent; only steps whose prediction stays within ``limit`` bytes."""
+    def _step(self, plan: Plan, *, cheaper: bool, limit: float = math.inf, frozen: Sequence[str] = ()) -> Plan | None:
+        """One QP step of one attribute (not of the ``frozen`` ones): the least error added per byte
+        saved (``cheaper``), or the most error removed per byte spent; only steps whose prediction
+        stays within ``limit`` bytes."""
         moves = []
         for name, model in self.models_.items():
-            if name == "positions":
+            if name == "positions" or name in frozen:
                 continue
             i = int(np.searchsorted(model.choices, plan.settings[name]))
             j = i + (1 if cheaper else -1)  # a higher QP costs fewer bytes
