@@ -41,7 +41,7 @@ import gscodec_shac.openmp  # noqa: F401  (sets OMP_WAIT_POLICY before torch loa
 import torch  # noqa: E402
 
 from gscodec_shac.deform_arch import (
-    ARCH_FILE, MODEL_PLY, WEIGHTS_FILE, DeformArch, is_dynamic_model, is_own_dynamic_model,
+    ARCH_FILE, MODEL_PLY, WEIGHTS_FILE, DeformArch, is_dynamic_model, is_own_dynamic_model, skip_index,
 )
 from gscodec_shac.errors import ModelFormatError
 from gscodec_shac.gaussians import GaussianCloud
@@ -90,7 +90,7 @@ class DeformNetwork(torch.nn.Module):
                                                     torch.nn.Linear(a.time_width, a.time_out)])
         else:
             self.time_layers = torch.nn.ModuleList()
-        self.skip = a.depth // 2 if a.depth // 2 < a.depth - 1 else -1  # no skip after the last layer
+        self.skip = skip_index(a)  # no skip after the last layer
         layers = [torch.nn.Linear(a.input_dims, a.width)]
         for i in range(a.depth - 1):
             layers.append(torch.nn.Linear(a.width + (a.input_dims if i == self.skip else 0), a.width))

@@ -87,7 +87,7 @@ def weight_shapes(arch: DeformArch) -> list[tuple[str, tuple[int, ...]]]:
     if arch.time_net:
         linear("time_layers.0", arch.t_dims, arch.time_width)
         linear("time_layers.1", arch.time_width, arch.time_out)
-    skip = arch.depth // 2 if arch.depth // 2 < arch.depth - 1 else -1
+    skip = skip_index(arch)
     linear("layers.0", arch.input_dims, arch.width)
     for i in range(arch.depth - 1):
         linear(f"layers.{i + 1}", arch.width + (arch.input_dims if i == skip else 0), arch.width)
@@ -95,6 +95,18 @@ def weight_shapes(arch: DeformArch) -> list[tuple[str, tuple[int, ...]]]:
     linear("head_rot", arch.width, 4)
     linear("head_scale", arch.width, 3)
     return out
+
+
+def skip_index(arch: DeformArch) -> int:
+    """The hidden layer whose output is joined by the encoded input again (the reference's skip at
+    ``depth // 2``), -1 when that would be the last layer; ``layers.{skip + 1}`` takes both."""
+    return arch.depth // 2 if arch.depth // 2 < arch.depth - 1 else -1
+
+
+def skip_input_layer(arch: DeformArch) -> str | None:
+    """Name of the weight matrix that takes the skip's concatenated input, if there is a skip."""
+    skip = skip_index(arch)
+    return None if skip < 0 else f"layers.{skip + 1}.weight"
 
 
 def weight_count(arch: DeformArch) -> int:

@@ -338,8 +338,9 @@ def test_gsc_round_trip_of_a_dynamic_model(tmp_path: Path, dynamic_dir: Path, bi
                                | ({"deformation_mixed_bits"} if mixed else set()))
     view = read_header(stream)
     assert view.deformation is not None and view.deformation.arch == DeformArch(depth=4, width=32)
-    # below 8 bits the time net's first layer and the three heads (the last three matrices) keep 8
-    per_matrix = (8,) + (bits,) * 5 + (8,) * 3 if mixed else bits  # 2 time-net, 4 hidden, 3 head matrices
+    # below 8 bits the time net's first layer and the three heads (the last three matrices) keep 8,
+    # the matrix after the skip (layers.3 at depth 4) gets one bit more
+    per_matrix = (8,) + (bits,) * 4 + (bits + 1,) + (8,) * 3 if mixed else bits  # 2 time, 4 hidden, 3 heads
     assert (view.deformation.dtype, view.deformation.bits) == (("uint8", per_matrix) if quantised else ("float16", 16))
     net_bytes = view.chunk_bytes["deformation"]
     assert 0 < net_bytes <= 2 * view.deformation.weights + 64
@@ -366,7 +367,8 @@ def test_gsc_round_trip_of_a_dynamic_model(tmp_path: Path, dynamic_dir: Path, bi
             continue
         # per row on a grid of 2^b values spanning the row's range (+ float16 rounding of lo and step); the
         # fitted rounding may pick a farther grid value than the nearest, within the range
-        b = 8 if key.startswith("head_") else bits
+        b = dict(zip([k for k, v in original.net.weights().items() if v.ndim == 2], view.deformation.bits
+                     if mixed else [bits] * 9))[key]
         lo, hi = value.min(axis=1, keepdims=True), value.max(axis=1, keepdims=True)
         step, half = (hi - lo) / (2 ** b - 1), 1e-3 * np.abs(value).max()  # half: float16 rounding of lo, step
         assert np.all((got >= lo - half) & (got <= hi + 1.01 * step + half)), key
@@ -465,7 +467,7 @@ def test_a_2_1_decoder_refuses_mixed_network_bits(tmp_path: Path, dynamic_dir: P
     encode_file(dynamic_dir, tmp_path / "m.gsc", "gsplat_png", network_bits=4)
     encode_file(dynamic_dir, tmp_path / "u.gsc", "gsplat_png", network_bits=8)
     assert main(["info", str(tmp_path / "m.gsc")]) == 0
-    assert "per-row quantised, bits per matrix 8,4,4,4,4,4,8,8,8)" in capsys.readouterr().out
+    assert "per-row quantised, bits per matrix 8,4,4,4,4,5,8,8,8)" in capsys.readouterr().out
     monkeypatch.delitem(container.FEATURES, "deformation_mixed_bits")
     with pytest.raises(BitstreamError, match="needs deformation_mixed_bits, which this version"):
         container.Bitstream.read(tmp_path / "m.gsc")
@@ -730,7 +732,7 @@ def test_network_bits_for_training_outside_2_to_8_are_refused() -> None:
 
 def test_encode_codes_a_network_trained_on_a_grid_at_its_bits(tmp_path: Path, dynamic_dir: Path) -> None:
     """Without ``--network-bits``, ``encode`` codes a network whose matrices lie on the 4-bit grid (what
-    ``train-dynamic --network-bits 4`` saves) at 4 bits, heads at 8, exactly; a float network at the default 8."""
+    ``train-dynamic --network-bits 4`` saves) on that grid (:func:`encoder_grid`), exactly; a float network at the default 8."""
     from gscodec_shac.codec import decode_file, encode_file
     from gscodec_shac.codec import deformation as coding
     from gscodec_shac.codec.container import Bitstream
@@ -752,3 +754,25 @@ def test_encode_codes_a_network_trained_on_a_grid_at_its_bits(tmp_path: Path, dy
         if value.ndim == 2:  # on the grid up to the float16 rounding of each row's lo and step
             step = (value.max(axis=1) - value.min(axis=1)) / 255
             assert np.all(np.abs(back[name] - value) <= np.maximum(step, 1e-6)[:, None])
+
+
+def test_encode_codes_a_network_trained_on_the_earlier_heads_only_grid_on_that_grid(tmp_path: Path,
+                                                                                     dynamic_dir: Path) -> None:
+    """Networks trained with `--network-bits 4` before the time layer and the matrix after the skip
+    were kept finer lie on the heads-only grid: `encode` still finds it and codes them on it."""
+    from gscodec_shac.codec import deformation as coding
+    from gscodec_shac.codec import encode_file
+    from gscodec_shac.codec.container import Bitstream
+    from gscodec_shac.codec.header import read_header
+    from gscodec_shac.deform import load_dynamic_model
+
+    model = load_dynamic_model(dynamic_dir)
+    old = coding.heads_only_grid(model.arch, 4)
+    assert old != coding.encoder_grid(model.arch, 4)
+    model.net.snap_to_grid(old)
+    gridded = save_dynamic_model(tmp_path / "old", model)
+    assert coding.trained_grid(model.arch, model.net.weights()) == tuple(old.values())
+    encode_file(gridded, tmp_path / "o.gsc", "gsplat_png")
+    assert read_header(Bitstream.read(tmp_path / "o.gsc")).deformation.bits == tuple(old.values())
+    rough = load_dynamic_model(dynamic_dir)  # a float network lies on no grid: the default 8 bits
+    assert coding.trained_grid(rough.arch, rough.net.weights()) is None

@@ -20,8 +20,9 @@ by the header entry ``deformation`` = ``{"arch": {...}, "dtype": ..., ["bits": B
   network's first layer (:data:`PROTECTED`) at :data:`HEAD_BITS` when the other matrices get
   fewer: a head's rounding error reaches the deformation directly, and every row of the time
   layer feeds every Gaussian's time code (per-layer sensitivity in docs/dynamic.md; together 3.3%
-  of the weights). Streams written when only the heads were kept decode the same way (the list
-  is in the header). A list whose values are all
+  of the weights); the matrix after the skip (:func:`~gscodec_shac.deform_arch.skip_input_layer`,
+  which takes the encoded input again) gets one bit more than the rest. Streams written with
+  other allocations decode the same way (the list is in the header). A list whose values are all
   equal is written as the single ``B`` of format 2.1 (the same bytes).
 
 The encoder picks the codes on each row's grid by output-aware rounding when it has the
@@ -43,7 +44,7 @@ import numpy as np
 
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.deformation_fit import fitted_codes, quantise_rows
-from gscodec_shac.deform_arch import DeformArch, weight_count, weight_shapes
+from gscodec_shac.deform_arch import DeformArch, skip_input_layer, weight_count, weight_shapes
 from gscodec_shac.errors import ModelFormatError
 
 CHUNK = "deformation"
@@ -83,13 +84,14 @@ def matrix_bits(arch: DeformArch, bits: Bits) -> tuple[int, ...]:
 
 
 def encoder_bits(arch: DeformArch, bits: int) -> Bits:
-    """What the encoder writes for ``--network-bits bits``: the :data:`PROTECTED` matrices at
-    :data:`HEAD_BITS` when ``bits`` is lower (a tuple, format 2.2), else ``bits`` (16: float16; 8:
-    uniform, format 2.1)."""
+    """What the encoder writes for ``--network-bits bits``: when ``bits`` is below :data:`HEAD_BITS`
+    a tuple (format 2.2) with the :data:`PROTECTED` matrices at :data:`HEAD_BITS`, the matrix after
+    the skip at ``bits + 1`` and the rest at ``bits``; else ``bits`` (16: float16; 8: uniform, format 2.1)."""
     dtype_of(bits)
     if bits == 16 or bits >= HEAD_BITS:
         return bits
-    return tuple(HEAD_BITS if name in PROTECTED else bits for name in _matrices(arch))
+    skip = skip_input_layer(arch)
+    return tuple(HEAD_BITS if name in PROTECTED else bits + 1 if name == skip else bits for name in _matrices(arch))
 
 
 def encoder_grid(arch: DeformArch, bits: int) -> dict[str, int]:
@@ -171,13 +173,21 @@ def on_grid(weights: dict[str, np.ndarray], grid: dict[str, int]) -> bool:
     return True
 
 
-def trained_grid_bits(arch: DeformArch, weights: dict[str, np.ndarray]) -> int | None:
-    """The fewest bits (2..7) whose encoder grid every weight matrix already lies on (a network
-    trained with ``train-dynamic --network-bits``), else None: what ``encode`` codes such a network
-    with when ``--network-bits`` is not given."""
+def heads_only_grid(arch: DeformArch, bits: int) -> dict[str, int]:
+    """The grid ``--network-bits bits`` trained against before this version kept the time layer and
+    the matrix after the skip finer: the heads at :data:`HEAD_BITS`, every other matrix at ``bits``."""
+    return {name: HEAD_BITS if name in HEADS and bits < HEAD_BITS else bits for name in _matrices(arch)}
+
+
+def trained_grid(arch: DeformArch, weights: dict[str, np.ndarray]) -> tuple[int, ...] | None:
+    """The bits per matrix of the coarsest grid (2..7 bits: this version's :func:`encoder_grid`, else
+    the earlier :func:`heads_only_grid`) that every weight matrix already lies on (a network trained
+    with ``train-dynamic --network-bits``), else None: what ``encode`` codes such a network with when
+    ``--network-bits`` is not given."""
     for bits in range(MIN_BITS, MAX_BITS):
-        if on_grid(weights, encoder_grid(arch, bits)):
-            return bits
+        for grid in (encoder_grid(arch, bits), heads_only_grid(arch, bits)):
+            if on_grid(weights, grid):
+                return tuple(grid.values())
     return None
 
 

@@ -102,12 +102,13 @@ def encode_file(
     means = cloud.means if dynamic is not None else None  # the network's rounding is fitted on them
     stream = encoder.encode(cloud, release_input=True)  # the model is freed once read (memory, issue 25)
     if dynamic is not None:
-        from gscodec_shac.codec.deformation import DEFAULT_BITS, encoder_bits, trained_grid_bits
+        from gscodec_shac.codec.deformation import DEFAULT_BITS, encoder_bits, trained_grid
 
         weights = dynamic.net.weights()
-        if network_bits is None:  # a network trained on a coarser grid is coded on it, else the default
-            network_bits = trained_grid_bits(dynamic.arch, weights) or DEFAULT_BITS
-        add_deformation(stream, dynamic.arch, weights, encoder_bits(dynamic.arch, network_bits), means=means)
+        # a network trained on a coarser grid is coded on it, else at the default
+        bits = encoder_bits(dynamic.arch, network_bits) if network_bits is not None else \
+            trained_grid(dynamic.arch, weights) or encoder_bits(dynamic.arch, DEFAULT_BITS)
+        add_deformation(stream, dynamic.arch, weights, bits, means=means)
     with inputs_protected(in_ply, *([cameras] if cameras is not None else [])):
         size = stream.write(out_gsc)
     return {

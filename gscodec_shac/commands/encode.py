@@ -94,8 +94,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--seed", type=int, help="seed of the sorting and of the vq k-means (default: the rate point's)")
     parser.add_argument("--network-bits", type=int, choices=(16, 8, 7, 6, 5, 4, 3, 2), metavar="BITS",
                         help="a dynamic model's deformation network: 16 stores float16 weights, 2-8 quantises each "
-                        "weight matrix per row to that many bits, the three output heads and the time net's first layer at 8 (default 8, or the "
-                        "bits a network trained with `train-dynamic --network-bits` was trained for; docs/dynamic.md)")
+                        "weight matrix per row to that many bits (below 8: the output heads and the time net's first "
+                        "layer at 8, the matrix after the skip at one bit more; default 8, or the grid a network "
+                        "trained with `train-dynamic --network-bits` was trained on; docs/dynamic.md)")
     add_quiet(parser)
     add_json(parser)
     add_force(parser)
