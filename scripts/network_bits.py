@@ -106,7 +106,7 @@ def main() -> None:
         r["render_psnr_vs_float16"] = psnr_between_renders(args.work / f"b{base['variant']}_frames",
                                                            args.work / f"b{r['variant']}_frames")
         name = ("float16" if r["bits"] == 16 else f"{r['bits']}-bit, plain rounding" if r["plain"]
-                else f"{r['bits']}-bit, fitted" + (", heads 8" if r["bits"] < 8 else ""))
+                else f"{r['bits']}-bit as `encode` codes it" + (" (heads, time layer 8; after the skip +1)" if r["bits"] < 8 else ""))
         mean, low = r["render_psnr_vs_float16"]
         print(f"| {name} | {r['network_bytes']:,} | {r['size_ratio_vs_float16']:.2f}x smaller | {r['file_bytes']:,} | "
               f"{r['psnr']:.3f} | {r['psnr_vs_float16']:+.3f} | {r['ssim']:.4f} | {mean:.1f} / {low:.1f} |")
