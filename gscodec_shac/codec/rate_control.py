@@ -66,7 +66,7 @@ from gscodec_shac.codec.importance import gaussian_importance, importance_views,
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode, set_order
 from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
 from gscodec_shac.codec.rate_sh_degree import (DC_ONLY_BARS, RATIO_QPS, DcOnlyChoice, cloud_energy, fit_choices,
-                                                kept_flags)
+                                                kept_flags, whole_cloud_flags)
 from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac import limits
 from gscodec_shac.limits import default_workers
@@ -315,8 +315,11 @@ class RateController:
                 rates, errors, overhead = self._probe(rows, bar)
                 self.seconds_["probe"] = time.perf_counter() - tic
                 tic = time.perf_counter()
+                # the DC-only bars' probe encodes (x265 in worker processes) run beside the calibration's renders
+                dc_only_sizes = pool.submit(self._dc_only_probe_sizes, rows, rates) if self._dc_only_applies(rates) \
+                    else None
                 sensitivity = self._calibrate(errors, bar)
-                self.dc_only_ = self._fit_dc_only(rows, rates, bar)
+                self.dc_only_ = self._fit_dc_only(rates, dc_only_sizes.result() if dc_only_sizes else {}, bar)
                 self.seconds_["calibrate"] = time.perf_counter() - tic
             self.models_["positions"] = self._position_model(coded, sensitivity["positions"])
         grid = np.arange(0, 52)
@@ -416,27 +419,37 @@ class RateController:
         return {(value, j): (keep, kept_flags(energy, everything if keep is None else np.flatnonzero(keep), value))
                 for value in DC_ONLY_BARS if value > 0 for j, keep in enumerate(kept)}
 
-    def _fit_dc_only(self, rows: np.ndarray, rates: dict[str, np.ndarray], bar: Any = None) -> list[DcOnlyChoice]:
-        """The DC-only energy bars to choose between, measured (:func:`.rate_sh_degree.fit_choices`) on
-        the probe of ``rows``, with the zeroing errors rendered by :meth:`_calibrate`; bar 0 alone when
-        they are no choice (:meth:`_dc_only_applies`)."""
-        if not self._dc_only_applies(rates):
-            return [DcOnlyChoice(0.0)]
+    def _dc_only_probe_sizes(self, rows: np.ndarray, rates: dict[str, np.ndarray]) -> dict[tuple[float, int], float]:
+        """The SH bytes (scaled to the whole cloud) of the probe of ``rows`` under each DC-only bar that
+        flags something, at each of :data:`RATIO_QPS`: the encodes :func:`.rate_sh_degree.fit_choices`
+        measures, run one after the other (beside the calibration's renders)."""
         probe = self.cloud.select(rows)
         scale = self.cloud.num_gaussians / probe.num_gaussians
+        out = {}
+        for value in DC_ONLY_BARS:
+            if value <= 0 or not whole_cloud_flags(self.cloud, value).any():
+                continue
+            for qp in RATIO_QPS:
+                point = self._rate_point({a: qp for a in rates} | {"positions": 16}).with_overrides(dc_only_energy=value)
+                sizes = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers).encode(probe) \
+                    .attribute_sizes()
+                out[(value, qp)] = scale * sizes.get("sh", 0) + sizes.get("sh_state", 0)
+        return out
 
-        def encode_probe(value: float, qp: int) -> float:
-            point = self._rate_point({a: qp for a in rates} | {"positions": 16}).with_overrides(dc_only_energy=value)
-            sizes = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers).encode(probe) \
-                .attribute_sizes()
-            return scale * sizes.get("sh", 0) + sizes.get("sh_state", 0)
+    def _fit_dc_only(self, rates: dict[str, np.ndarray], sizes: dict[tuple[float, int], float],
+                     bar: Any = None) -> list[DcOnlyChoice]:
+        """The DC-only energy bars to choose between, measured (:func:`.rate_sh_degree.fit_choices`) from
+        the probe encodes ``sizes`` (:meth:`_dc_only_probe_sizes`), with the zeroing errors rendered by
+        :meth:`_calibrate`; bar 0 alone when they are no choice (:meth:`_dc_only_applies`)."""
+        if not self._dc_only_applies(rates):
+            return [DcOnlyChoice(0.0)]
 
         def zeroing_errors(value: float) -> tuple[float, ...]:
             return tuple(max(self._zeroed_mse[(value, j)] - prune_mse, 0.0)
                          for j, (_, _, prune_mse) in enumerate(self.prune_))
 
         without = {qp: float(rates["sh"][PROBE_QPS.index(qp)]) for qp in RATIO_QPS}  # the probe's own encodes
-        return fit_choices(self.cloud, without, encode_probe, zeroing_errors, bar=bar)
+        return fit_choices(self.cloud, without, lambda value, qp: sizes[(value, qp)], zeroing_errors, bar=bar)
 
     def _dc_factor(self, settings: dict[str, int], name: str) -> float:
         """The factor of attribute ``name``'s bytes under the settings' DC-only bar."""
