@@ -327,6 +327,7 @@ def dynamic_dir(tmp_path: Path) -> Path:
 def test_gsc_round_trip_of_a_dynamic_model(tmp_path: Path, dynamic_dir: Path, bits: int) -> None:
     from gscodec_shac.codec import decode_file, encode_file
     from gscodec_shac.codec.container import Bitstream
+    from gscodec_shac.codec.deformation import matrix_bits
     from gscodec_shac.codec.header import read_header
 
     summary = encode_file(dynamic_dir, tmp_path / "d.gsc", "gsplat_png", network_bits=bits)
@@ -367,8 +368,8 @@ def test_gsc_round_trip_of_a_dynamic_model(tmp_path: Path, dynamic_dir: Path, bi
             continue
         # per row on a grid of 2^b values spanning the row's range (+ float16 rounding of lo and step); the
         # fitted rounding may pick a farther grid value than the nearest, within the range
-        b = dict(zip([k for k, v in original.net.weights().items() if v.ndim == 2], view.deformation.bits
-                     if mixed else [bits] * 9))[key]
+        b = dict(zip([k for k, v in original.net.weights().items() if v.ndim == 2],
+                     matrix_bits(view.deformation.arch, view.deformation.bits)))[key]
         lo, hi = value.min(axis=1, keepdims=True), value.max(axis=1, keepdims=True)
         step, half = (hi - lo) / (2 ** b - 1), 1e-3 * np.abs(value).max()  # half: float16 rounding of lo, step
         assert np.all((got >= lo - half) & (got <= hi + 1.01 * step + half)), key

@@ -316,10 +316,11 @@ class RateController:
                 self.seconds_["probe"] = time.perf_counter() - tic
                 tic = time.perf_counter()
                 # the DC-only bars' probe encodes (x265 in worker processes) run beside the calibration's renders
-                dc_only_sizes = pool.submit(self._dc_only_probe_sizes, rows, rates) if self._dc_only_applies(rates) \
+                dc_only_probes = pool.submit(self._dc_only_probe_sizes, rows, rates) if self._dc_only_applies(rates) \
                     else None
                 sensitivity = self._calibrate(errors, bar)
-                self.dc_only_ = self._fit_dc_only(rates, dc_only_sizes.result() if dc_only_sizes else {}, bar)
+                self.dc_only_ = self._fit_dc_only(rates, *(dc_only_probes.result() if dc_only_probes else ({}, {})),
+                                                  bar=bar)
                 self.seconds_["calibrate"] = time.perf_counter() - tic
             self.models_["positions"] = self._position_model(coded, sensitivity["positions"])
         grid = np.arange(0, 52)
@@ -419,28 +420,31 @@ class RateController:
         return {(value, j): (keep, kept_flags(energy, everything if keep is None else np.flatnonzero(keep), value))
                 for value in DC_ONLY_BARS if value > 0 for j, keep in enumerate(kept)}
 
-    def _dc_only_probe_sizes(self, rows: np.ndarray, rates: dict[str, np.ndarray]) -> dict[tuple[float, int], float]:
-        """The SH bytes (scaled to the whole cloud) of the probe of ``rows`` under each DC-only bar that
-        flags something, at each of :data:`RATIO_QPS`: the encodes :func:`.rate_sh_degree.fit_choices`
-        measures, run one after the other (beside the calibration's renders)."""
+    def _dc_only_probe_sizes(self, rows: np.ndarray, rates: dict[str, np.ndarray]
+                             ) -> tuple[dict[float, np.ndarray], dict[tuple[float, int], float]]:
+        """Each DC-only bar's flags over the whole cloud (:func:`.rate_sh_degree.whole_cloud_flags`) and
+        the SH bytes (scaled to the whole cloud) of the probe of ``rows`` under each bar that flags
+        something, at each of :data:`RATIO_QPS`: what :func:`.rate_sh_degree.fit_choices` measures,
+        the encodes one after the other (beside the calibration's renders)."""
         probe = self.cloud.select(rows)
         scale = self.cloud.num_gaussians / probe.num_gaussians
+        flags = {value: whole_cloud_flags(self.cloud, value) for value in DC_ONLY_BARS if value > 0}
         out = {}
-        for value in DC_ONLY_BARS:
-            if value <= 0 or not whole_cloud_flags(self.cloud, value).any():
+        for value, flagged in flags.items():
+            if not flagged.any():
                 continue
             for qp in RATIO_QPS:
                 point = self._rate_point({a: qp for a in rates} | {"positions": 16}).with_overrides(dc_only_energy=value)
                 sizes = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers).encode(probe) \
                     .attribute_sizes()
                 out[(value, qp)] = scale * sizes.get("sh", 0) + sizes.get("sh_state", 0)
-        return out
+        return flags, out
 
-    def _fit_dc_only(self, rates: dict[str, np.ndarray], sizes: dict[tuple[float, int], float],
-                     bar: Any = None) -> list[DcOnlyChoice]:
+    def _fit_dc_only(self, rates: dict[str, np.ndarray], flags: dict[float, np.ndarray],
+                     sizes: dict[tuple[float, int], float], bar: Any = None) -> list[DcOnlyChoice]:
         """The DC-only energy bars to choose between, measured (:func:`.rate_sh_degree.fit_choices`) from
-        the probe encodes ``sizes`` (:meth:`_dc_only_probe_sizes`), with the zeroing errors rendered by
-        :meth:`_calibrate`; bar 0 alone when they are no choice (:meth:`_dc_only_applies`)."""
+        the bars' ``flags`` and probe encodes ``sizes`` (:meth:`_dc_only_probe_sizes`), with the zeroing
+        errors rendered by :meth:`_calibrate`; bar 0 alone when they are no choice (:meth:`_dc_only_applies`)."""
         if not self._dc_only_applies(rates):
             return [DcOnlyChoice(0.0)]
 
@@ -449,7 +453,8 @@ class RateController:
                          for j, (_, _, prune_mse) in enumerate(self.prune_))
 
         without = {qp: float(rates["sh"][PROBE_QPS.index(qp)]) for qp in RATIO_QPS}  # the probe's own encodes
-        return fit_choices(self.cloud, without, lambda value, qp: sizes[(value, qp)], zeroing_errors, bar=bar)
+        return fit_choices(self.cloud, without, lambda value, qp: sizes[(value, qp)], zeroing_errors, bar=bar,
+                           flags_of=flags)
 
     def _dc_factor(self, settings: dict[str, int], name: str) -> float:
         """The factor of attribute ``name``'s bytes under the settings' DC-only bar."""

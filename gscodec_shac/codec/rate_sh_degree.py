@@ -93,20 +93,22 @@ def fit_choices(
     zeroing_errors: Callable[[float], tuple[float, ...]],
     bars: tuple[float, ...] = DC_ONLY_BARS,
     bar: Any = None,
+    flags_of: Mapping[float, np.ndarray] | None = None,
 ) -> list[DcOnlyChoice]:
     """The measured :class:`DcOnlyChoice` of every bar in ``bars`` (bar 0 first, unchanged).
 
     ``without``: the SH bytes of the probe without a bar at each of :data:`RATIO_QPS` (the rate
     model's own probe encodes); ``encode_probe(bar, qp)``: those bytes with the bar, scaled alike;
     ``zeroing_errors(bar)``: the zeroing error under each pruning candidate (``bar``: a progress bar
-    advanced once per bar)."""
+    advanced once per bar); ``flags_of``: each bar's :func:`whole_cloud_flags` when the caller has
+    them already (else computed here)."""
     out = [DcOnlyChoice(0.0)]
     if not any(value > 0 for value in bars):
         return out
     for value in bars:
         if value <= 0:
             continue
-        flags = whole_cloud_flags(cloud, value)
+        flags = flags_of[value] if flags_of is not None else whole_cloud_flags(cloud, value)
         if flags.any():
             measured = [encode_probe(value, qp) for qp in RATIO_QPS]
             out.append(DcOnlyChoice(
