@@ -33,6 +33,7 @@ COMMANDS: dict[str, tuple[str, ...]] = {
     "encode": ("codec", "render"), "render": ("render",), "demo": ("codec", "render"),
     "rd": ("codec", "render"), "rate-points": ("codec", "render"), "train": ("render", "train"),
     "train-dynamic": ("render", "train"), "lst-finetune": ("render", "train"),
+    "tune-network": ("render", "train"),
 }
 NOTICE = "compiling kernels once (about a minute); later runs load them from numba's cache"
 

@@ -15,6 +15,9 @@ its children, from ``os.wait4``) and peak RSS:
   file (skipped, with a line saying why, when node or the tool is absent);
 
 plus ``startup``: ``gscodec-shac decode`` of a 300-Gaussian fixture stream (start-up cost).
+``--ladder`` also encodes every point of the rate-point file of ``--rate-point`` (``encode_rpK``,
+the bar "any ``shac_ladder`` point"), and ``--target-psnr P`` a PSNR target (``target_psnr``,
+with the fixed encode of its chosen settings, ``chosen_fixed_psnr``, and their ratio).
 ``--baseline ../main`` runs the encode, every decode step and the target encode under that
 checkout too, right before ours (the baseline's stream is overwritten by ours, except the target
 stream, ``_target_baseline.gsc``; the two fixed encodes' sha256 are compared and printed), and
@@ -165,6 +168,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate-point", default="shac_ladder:rp4")
     parser.add_argument("--target-bpg", type=float, default=100.0)
     parser.add_argument("--no-target", action="store_true", help="skip the --target-bpg encodes")
+    parser.add_argument("--ladder", action="store_true",
+                        help="also encode every point of --rate-point's file (e.g. shac_ladder:rp1..rp9)")
+    parser.add_argument("--target-psnr", type=float, metavar="DB",
+                        help="also encode to this PSNR target (dB against the uncompressed model's orbit renders)")
     parser.add_argument("--no-peer", action="store_true", help="skip splat-transform")
     parser.add_argument("--nice", type=int, default=5, help="niceness of the measured processes")
     parser.add_argument("--baseline", type=Path,
@@ -217,6 +224,28 @@ def main(argv: list[str] | None = None) -> int:
         point = ["-r", args.rate_point, "--sh", "pca", "--er", "0.97", "--force"]
         for round_ in range(max(1, args.repeat)):
             enc = paired_encode(size, [*cli, "encode", str(ply), str(gsc), *point], gsc, ours_first=round_ % 2 == 1)
+        if args.ladder:
+            from gscodec_shac.codec.rate_points import load_rate_point_file
+
+            stem = args.rate_point.split(":")[0]
+            for name in load_rate_point_file(ROOT / "rate_points" / f"{stem}.yaml"
+                                             if not stem.endswith(".yaml") else stem):
+                out = args.out / size / f"s{size}_{name}.gsc"
+                record(size, f"encode_{name}", measured([*cli, "encode", str(ply), str(out), "-r", f"{stem}:{name}",
+                                                         "--sh", "pca", "--er", "0.97", "--force"], args.nice))
+                rows[-1]["bytes"] = out.stat().st_size
+        if args.target_psnr is not None:
+            aimed_psnr = args.out / size / f"s{size}_target_psnr.gsc"
+            target = record(size, "target_psnr", measured(
+                [*cli, "encode", str(ply), str(aimed_psnr), "--target-psnr", str(args.target_psnr), "--force"],
+                args.nice))
+            chosen = chosen_rate_point(aimed_psnr, args.out / size / "chosen_psnr.yaml")
+            if chosen is not None:
+                own = record(size, "chosen_fixed_psnr", measured(
+                    [*cli, "encode", str(ply), str(aimed_psnr.with_name(aimed_psnr.stem + "_chosen_fixed.gsc")),
+                     "-r", f"{chosen}:chosen", "--force"], args.nice))
+                print(f"{size:>5} ratio PSNR target / fixed encode of its own chosen settings: "
+                      f"{target['wall_s'] / own['wall_s']:.2f} (wall), {target['cpu_s'] / own['cpu_s']:.2f} (cpu)")
         median: dict[str, dict] = {}  # per decode step, the run of median wall time
         for step, command in (("decode_arrays", [sys.executable, "-c", DECODE_ARRAYS, str(gsc)]),
                               ("decode", [*cli, "decode", str(gsc), str(dec), "--force"])):
