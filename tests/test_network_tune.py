@@ -70,7 +70,8 @@ def test_tuning_recovers_what_snapping_to_the_grid_loses_and_leaves_the_gaussian
     snapped.snap_to_grid(grid)
     snapped_psnr = evaluate_dynamic(DynamicModel(teacher.cloud, snapped), capture)["mean_psnr"]
 
-    tuned = tune_network(teacher, capture, NetworkTuneConfig(bits=2, iterations=60, lr=3e-3, lr_final=3e-4))
+    tuned = tune_network(teacher, capture, NetworkTuneConfig(bits=2, float_iterations=0, iterations=60, lr=3e-3,
+                                                                  lr_final=3e-4))
     tuned_psnr = evaluate_dynamic(tuned, capture)["mean_psnr"]
     assert tuned_psnr > snapped_psnr + 1.0, (snapped_psnr, tuned_psnr)
     assert on_grid(tuned.net.weights(), grid)
@@ -84,13 +85,29 @@ def test_the_float_control_keeps_the_network_off_the_grid() -> None:
     from gscodec_shac.train.network_tune import NetworkTuneConfig, tune_network
 
     teacher = teacher_model()
-    tuned = tune_network(teacher, capture_of(teacher, frames=3), NetworkTuneConfig(bits=16, iterations=3))
+    tuned = tune_network(teacher, capture_of(teacher, frames=3), NetworkTuneConfig(bits=16, float_iterations=3))
     assert not on_grid(tuned.net.weights(), encoder_grid(ARCH, 7))
+    assert any(not np.array_equal(a, b) for a, b in zip(tuned.net.weights().values(), teacher.net.weights().values()))
+
+
+def test_the_two_phases_are_a_float_tuning_then_a_grid_tuning_of_its_result() -> None:
+    """One call equals the float control followed by a grid-only tuning of its network (what the
+    two-step measurements in docs/dynamic.md ran as two commands)."""
+    from gscodec_shac.train.network_tune import NetworkTuneConfig, tune_network
+
+    teacher = teacher_model()
+    capture = capture_of(teacher, frames=4)
+    both = tune_network(teacher, capture, NetworkTuneConfig(bits=3, float_iterations=5, iterations=4))
+    first = tune_network(teacher, capture, NetworkTuneConfig(bits=16, float_iterations=5))
+    second = tune_network(first, capture, NetworkTuneConfig(bits=3, float_iterations=0, iterations=4))
+    for name, value in both.net.weights().items():
+        np.testing.assert_array_equal(value, second.net.weights()[name])
 
 
 @pytest.mark.parametrize("setting, message", [
     ({"bits": 8}, "--network-bits must be 2-7"), ({"bits": 1}, "--network-bits must be 2-7"),
-    ({"iterations": 0}, "--iterations"), ({"lr": 0.0}, "learning rates"),
+    ({"iterations": 0, "float_iterations": 0}, "--float-iterations"), ({"iterations": -1}, "--iterations"),
+    ({"lr": 0.0}, "learning rates"), ({"float_lr_final": -1.0}, "learning rates"),
 ])
 def test_bad_tuning_settings_are_refused(setting: dict, message: str) -> None:
     from gscodec_shac.train.network_tune import NetworkTuneConfig, NetworkTuneError
@@ -126,7 +143,8 @@ def test_the_command_writes_a_model_that_encode_codes_on_its_grid(tmp_path: Path
     model_dir = save_dynamic_model(tmp_path / "model", teacher)
     scene = write_dnerf_scene(tmp_path / "scene")
     out = tmp_path / "tuned"
-    assert main(["tune-network", str(model_dir), str(scene), str(out), "--network-bits", "3", "--iterations", "4",
+    assert main(["tune-network", str(model_dir), str(scene), str(out), "--network-bits", "3", "--float-iterations", "2",
+                 "--iterations", "4",
                  "--resolution-scale", "1", "-q"]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["config"]["bits"] == 3 and len(metrics["input_test"]["views"]) == 3

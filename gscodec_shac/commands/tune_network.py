@@ -19,8 +19,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="fit a trained dynamic model's deformation network to the grid `encode --network-bits B` codes "
         "(Gaussians frozen)",
         description="Quantisation-aware tuning after training: the canonical Gaussians stay as they are; the "
-        "deformation network trains for a few hundred training views through the per-row B-bit grid that "
-        "`encode --network-bits B` codes it on, and is saved on that grid. `encode` then recognises the grid and "
+        "deformation network trains on the training views, first in float, then through the per-row B-bit grid "
+        "that `encode --network-bits B` codes it on, and is saved on that grid. `encode` then recognises the grid and "
         "codes the tuned network as it is. MODEL is a dynamic model directory or a Deformable-3DGS output folder; "
         "SCENE_DIR is the D-NeRF scene it was trained on. metrics.json gives the test PSNR/SSIM of the input "
         "model (float network) and of the tuned one (the network on its grid).",
@@ -33,10 +33,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--network-bits", type=int, default=4, metavar="B",
                         help="the grid to tune for: `encode --network-bits B` (2-7, default 4); 16: the float network "
                         "trained the same way, without a grid (a control)")
-    parser.add_argument("--iterations", type=int, default=600, help="training views seen (default 600)")
-    parser.add_argument("--lr", type=float, default=1e-4, help="the network's learning rate at the first step "
-                        "(default 1e-4; decays log-linearly to --lr-final)")
-    parser.add_argument("--lr-final", type=float, default=1e-5, help="learning rate at the last step (default 1e-5)")
+    parser.add_argument("--float-iterations", type=int, default=600, metavar="N",
+                        help="training views seen in float first (default 600)")
+    parser.add_argument("--float-lr", type=float, default=1e-4, metavar="LR",
+                        help="learning rate of the float phase's first step (default 1e-4; decays log-linearly to "
+                        "--float-lr-final)")
+    parser.add_argument("--float-lr-final", type=float, default=1e-5, metavar="LR",
+                        help="learning rate of the float phase's last step (default 1e-5)")
+    parser.add_argument("--iterations", type=int, default=300, metavar="N",
+                        help="training views seen through the grid (default 300)")
+    parser.add_argument("--lr", type=float, default=3e-5, metavar="LR", help="learning rate of the grid phase's "
+                        "first step (default 3e-5; decays log-linearly to --lr-final)")
+    parser.add_argument("--lr-final", type=float, default=1e-5, metavar="LR",
+                        help="learning rate of the grid phase's last step (default 1e-5)")
     parser.add_argument("--resolution-scale", type=float, default=0.5, metavar="F",
                         help="scale the training images by F (default 0.5 = 400x400, as train-dynamic)")
     parser.add_argument("--background", choices=("black", "white"), default="black",
@@ -69,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
         if args.threads < 1:
             raise GscodecError(f"--threads must be at least 1, got {args.threads}")
         numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
-    config = NetworkTuneConfig(bits=args.network_bits, iterations=args.iterations, lr=args.lr,
+    config = NetworkTuneConfig(bits=args.network_bits, float_iterations=args.float_iterations, float_lr=args.float_lr,
+                               float_lr_final=args.float_lr_final, iterations=args.iterations, lr=args.lr,
                                lr_final=args.lr_final, seed=args.seed)
     config.validate()
     if out.exists() and not out.is_dir():
@@ -85,15 +95,16 @@ def run(args: argparse.Namespace) -> int:
     capture = load_dnerf_capture(scene, resolution_scale=args.resolution_scale, background=background,
                                  progress=not args.quiet)
     log: list[dict] = []
-    bar = tqdm(total=config.iterations, desc="tune-network", unit="view", disable=args.quiet, dynamic_ncols=True,
-               mininterval=2.0)
+    total = config.float_iterations + (config.iterations if config.bits != 16 else 0)
+    bar = tqdm(total=total, desc="tune-network", unit="view", disable=args.quiet, dynamic_ncols=True, mininterval=2.0)
     recent: list = []
 
     def record(step) -> None:
         recent.append(step)
         bar.update(1)
-        if step.iteration % 50 == 0 or step.iteration == config.iterations:
-            log.append({"it": step.iteration, "loss": sum(s.loss for s in recent) / len(recent),
+        last = config.float_iterations if step.phase == "float" else config.iterations
+        if step.iteration % 50 == 0 or step.iteration == last:
+            log.append({"phase": step.phase, "it": step.iteration, "loss": sum(s.loss for s in recent) / len(recent),
                         "psnr": sum(s.psnr for s in recent) / len(recent),
                         "s_per_it": sorted(s.seconds for s in recent)[len(recent) // 2]})
             bar.set_postfix(loss=f"{log[-1]['loss']:.4f}", psnr=f"{log[-1]['psnr']:.2f}")
