@@ -156,3 +156,18 @@ def test_the_command_writes_a_model_that_encode_codes_on_its_grid(tmp_path: Path
     # a second run does not write over the first without --force
     assert main(["tune-network", str(model_dir), str(scene), str(out), "--iterations", "1", "-q"]) != 0
     assert "pass --force to replace it" in capsys.readouterr().err
+
+
+def test_a_static_model_or_a_folder_without_frames_is_one_clear_error(tmp_path: Path, capsys) -> None:
+    from gscodec_shac.cli import main
+    from gscodec_shac.io.ply import write_ply
+
+    teacher = teacher_model(n=20)
+    write_ply(tmp_path / "static.ply", teacher.cloud)
+    model_dir = save_dynamic_model(tmp_path / "model", teacher)
+    scene = write_dnerf_scene(tmp_path / "scene")
+    assert main(["tune-network", str(tmp_path / "static.ply"), str(scene), str(tmp_path / "a"), "-q"]) == 2
+    assert "not a dynamic model directory" in capsys.readouterr().err
+    assert main(["tune-network", str(model_dir), str(tmp_path), str(tmp_path / "b"), "-q"]) == 2
+    assert "transforms" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
