@@ -171,3 +171,24 @@ def test_a_static_model_or_a_folder_without_frames_is_one_clear_error(tmp_path: 
     assert main(["tune-network", str(model_dir), str(tmp_path), str(tmp_path / "b"), "-q"]) == 2
     assert "transforms" in capsys.readouterr().err
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_a_deformable_3dgs_output_folder_is_tuned_into_our_model_directory(tmp_path: Path, capsys) -> None:
+    """A model trained elsewhere (the reference's output layout, its 8 x 256 network): tuned for 4 bits,
+    it becomes our model directory with the reference's architecture, its network on the 4-bit grid
+    and its canonical Gaussians unchanged."""
+    from gscodec_shac.cli import main
+    from gscodec_shac.codec.deformation import encoder_grid, on_grid
+    from tests.test_deformable3dgs import canonical, reference_state_dict, write_output
+
+    cloud = canonical(n=200)
+    folder = write_output(tmp_path / "reference", cloud, reference_state_dict(), 30000)
+    scene = write_dnerf_scene(tmp_path / "scene")
+    out = tmp_path / "tuned"
+    assert main(["tune-network", str(folder), str(scene), str(out), "--float-iterations", "1", "--iterations", "2",
+                 "--resolution-scale", "1", "--no-eval", "-q"]) == 0
+    given, tuned = load_dynamic_model(folder), load_dynamic_model(out)
+    assert tuned.arch == given.arch and (tuned.arch.depth, tuned.arch.width) == (8, 256)
+    assert on_grid(tuned.net.weights(), encoder_grid(tuned.arch, 4))
+    np.testing.assert_array_equal(tuned.cloud.means, given.cloud.means)
+    np.testing.assert_array_equal(tuned.cloud.sh_rest, given.cloud.sh_rest)
