@@ -1,0 +1,63 @@
+"""How far the rate controller's distortion models are from real renders, attribute by attribute.
+
+For a PSNR target the controller fits its models (``RateController.fit``), takes its first
+plan and encodes it. Then, for each attribute, the whole cloud is rendered with only that
+attribute as the encode decoded it, and its rendered MSE (against the uncompressed cloud, on
+the controller's calibration views) is set beside the MSE the model predicted for it.
+A ratio above 1: the model overstates that attribute's error (docs/benchmarks.md, "Every ladder
+point and a PSNR target at 1M").
+
+    python scripts/psnr_model_check.py ../out/bench/250k/s250k.ply --psnr 52 [--cameras cameras.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("model", help="a static model file (PLY, or any format the codec reads)")
+    parser.add_argument("--psnr", type=float, required=True, help="the PSNR target (dB against the uncompressed model)")
+    parser.add_argument("--cameras", help="a camera file (default: the controller's orbit views)")
+    parser.add_argument("--json", help="write the rows here too")
+    args = parser.parse_args()
+
+    from gscodec_shac.io.cameras import load_cameras
+    from gscodec_shac.codec import rate_control as rc
+    from gscodec_shac.codec.encoder import Encoder
+    from gscodec_shac.io.models import read_model
+
+    cloud, _ = read_model(args.model)
+    views = load_cameras(args.cameras) if args.cameras else None
+    controller = rc.RateController(cloud, views=views).fit()
+    target = rc.Target("psnr", args.psnr)
+    plan = controller._first_plan(target)
+    stream = controller._encode(plan, target)
+    measured = controller.measured_psnr(stream)
+    decoded = rc._decoded(stream, None)
+    encoder = Encoder(plan.rate_point, sh_stage=controller.stage_, fit_stage=False, chunk_cache=controller._cache,
+                      importance=controller.importance_)
+    encoder.encode(cloud)  # the same placement (cached): the source row of every decoded row
+    rows = []
+    for name, model in controller.models_.items():
+        predicted = float(model.mse[np.searchsorted(model.choices, plan.settings[name])])
+        row = {"attribute": name, "setting": plan.settings[name], "model_mse": predicted}
+        if name != "positions":  # positions: the model is the quantisation step's, not a render
+            rendered = controller._rendered_mse(rc._with_decoded(cloud, name, encoder.order_, decoded))
+            row.update(rendered_mse=rendered, ratio=predicted / max(rendered, 1e-30))
+        rows.append(row)
+    print(f"first plan {plan.settings}: predicted {plan.predicted_psnr:.2f} dB, measured {measured:.2f} dB")
+    for row in rows:
+        extra = f"  rendered {row['rendered_mse']:.3e}  model / rendered {row['ratio']:.2f}" if "ratio" in row else ""
+        print(f"{row['attribute']:10s} {row['setting']:>4}  model {row['model_mse']:.3e}{extra}")
+    if args.json:
+        with open(args.json, "w") as handle:
+            json.dump({"predicted_psnr": plan.predicted_psnr, "measured_psnr": measured, "rows": rows}, handle, indent=1)
+
+
+if __name__ == "__main__":
+    main()
