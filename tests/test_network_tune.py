@@ -192,3 +192,13 @@ def test_a_deformable_3dgs_output_folder_is_tuned_into_our_model_directory(tmp_p
     assert on_grid(tuned.net.weights(), encoder_grid(tuned.arch, 4))
     np.testing.assert_array_equal(tuned.cloud.means, given.cloud.means)
     np.testing.assert_array_equal(tuned.cloud.sh_rest, given.cloud.sh_rest)
+
+
+@pytest.mark.parametrize("command", ["tune-network", "train-dynamic", "train"])
+def test_threads_below_one_are_refused_by_every_trainer(tmp_path: Path, capsys, command: str) -> None:
+    from gscodec_shac.cli import main
+
+    positional = [str(tmp_path / "m"), str(tmp_path / "s"), str(tmp_path / "o")] if command == "tune-network" \
+        else [str(tmp_path / "s"), str(tmp_path / "o")]
+    assert main([command, *positional, "--threads", "0", "-q"]) == 2
+    assert "--threads must be at least 1, got 0" in capsys.readouterr().err

@@ -97,6 +97,17 @@ def add_threads(parser: argparse.ArgumentParser, what: str, default: str = "all 
     parser.add_argument("--threads", type=int, metavar="N", help=f"{what} (default: {default})")
 
 
+def set_numba_threads(threads: int | None) -> None:
+    """Apply a trainer's ``--threads N`` to numba (at most the threads it started with); None: all."""
+    if threads is None:
+        return
+    if threads < 1:
+        raise GscodecError(f"--threads must be at least 1, got {threads}")
+    import numba
+
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+
+
 def add_training_run_options(parser: argparse.ArgumentParser, *, on_stop: str, evaluated: str) -> None:
     """The run options every trainer command shares: seed, checkpoints, resume, time budget,
     threads, evaluation switch, quiet and ``--force``. ``on_stop`` says what a budget stop

@@ -15,7 +15,9 @@ import math
 import os
 from pathlib import Path
 
-from gscodec_shac.commands._options import add_command, add_lst_variant_options, add_training_run_options
+from gscodec_shac.commands._options import (
+    add_command, add_lst_variant_options, add_training_run_options, set_numba_threads,
+)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -80,7 +82,6 @@ def run(args: argparse.Namespace) -> int:
     import json
     import time
 
-    import numba
 
     from gscodec_shac.atomic import check_outputs, protect_inputs, write_atomic
     from gscodec_shac.errors import GscodecError, OutputError
@@ -90,10 +91,7 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     out = Path(args.out_dir)
     checkpoint = out / CHECKPOINT_NAME
-    if args.threads is not None:
-        if args.threads < 1:
-            raise GscodecError(f"--threads must be at least 1, got {args.threads}")
-        numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+    set_numba_threads(args.threads)
     if args.time_budget is not None and not args.time_budget > 0:
         raise GscodecError(f"--time-budget must be a positive number of seconds, got {args.time_budget}")
     if out.exists() and not out.is_dir():

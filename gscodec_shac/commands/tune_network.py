@@ -10,7 +10,7 @@ import argparse
 import os
 from pathlib import Path
 
-from gscodec_shac.commands._options import add_command, add_force, add_threads
+from gscodec_shac.commands._options import add_command, add_force, add_threads, set_numba_threads
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -63,7 +63,6 @@ def run(args: argparse.Namespace) -> int:
     import json
     import time
 
-    import numba
     from tqdm import tqdm
 
     from gscodec_shac.atomic import check_outputs, protect_inputs, write_atomic
@@ -74,10 +73,7 @@ def run(args: argparse.Namespace) -> int:
 
     started = time.perf_counter()
     out = Path(args.out_dir)
-    if args.threads is not None:
-        if args.threads < 1:
-            raise GscodecError(f"--threads must be at least 1, got {args.threads}")
-        numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+    set_numba_threads(args.threads)
     config = NetworkTuneConfig(bits=args.network_bits, float_iterations=args.float_iterations, float_lr=args.float_lr,
                                float_lr_final=args.float_lr_final, iterations=args.iterations, lr=args.lr,
                                lr_final=args.lr_final, seed=args.seed)
