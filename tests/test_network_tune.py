@@ -149,6 +149,10 @@ def test_the_command_writes_a_model_that_encode_codes_on_its_grid(tmp_path: Path
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["config"]["bits"] == 3 and len(metrics["input_test"]["views"]) == 3
     assert "test PSNR" in capsys.readouterr().out
+    assert main(["info", str(out)]) == 0  # info names the grid the network lies on
+    expected = ",".join(map(str, matrix_bits(ARCH, encoder_bits(ARCH, 3))))
+    assert f"on a coded grid, bits per matrix {expected}" in capsys.readouterr().out
+    assert main(["info", str(model_dir)]) == 0 and "coded grid" not in capsys.readouterr().out
     assert main(["encode", str(out), str(tmp_path / "t.gsc"), "-q"]) == 0
     view = read_header(Bitstream.read(tmp_path / "t.gsc"))
     assert view.deformation.bits == matrix_bits(ARCH, encoder_bits(ARCH, 3))

@@ -62,8 +62,11 @@ def run(args: argparse.Namespace) -> int:
 
         model = load_dynamic_model(args.file)
         summary = describe_cloud(model.cloud, args.file)
+        from gscodec_shac.codec.deformation import trained_grid
+
         summary["deformation"] = {"arch": model.arch.to_dict(), "weights": model.net.n_params,
-                                  "float32_bytes": 4 * model.net.n_params}
+                                  "float32_bytes": 4 * model.net.n_params,
+                                  "trained_grid": trained_grid(model.arch, model.net.weights())}
         text = format_cloud_summary(summary) + "\n" + _deformation_line(summary["deformation"])
         print(json.dumps(summary, indent=2) if args.json else text)
         return 0
@@ -130,6 +133,9 @@ def _deformation_line(info: dict[str, Any]) -> str:
         form = f"per-row quantised, bits per matrix {','.join(map(str, bits))}"
     stored = f"{info['bytes']:,} bytes ({form})" if "bytes" in info else \
         f"{info['float32_bytes']:,} bytes as float32"
+    if info.get("trained_grid"):  # a model directory whose network lies on a coded grid
+        bits = ",".join(map(str, info["trained_grid"]))
+        stored += f"; on a coded grid, bits per matrix {bits} (encode codes it at those bits)"
     return (f"deformation       MLP {arch['depth']}x{arch['width']}"
             f"{' + time net' if arch['time_net'] else ''}, {info['weights']:,} weights, {stored}")
 
