@@ -103,6 +103,25 @@ def test_psnr_target_lands_within_its_window(controller, psnr):
     assert len(outcome.stream.to_bytes()) == min(t["bytes"] for t in trials if t["measured_psnr"] >= psnr)
 
 
+def test_a_psnr_search_tries_single_steps_from_a_start_whose_own_prediction_is_stale(controller):
+    """Version 10: a start plan's own byte prediction dates from before its encode (bonsai's 37.5 dB first
+    plan: predicted 395,002 bytes, coded 483,227); its single steps are compared with the start's bytes
+    as the corrected models predict them now, so they stay candidates (before, none was tried and the
+    search ended outside the window)."""
+    import dataclasses
+
+    target = Target("psnr", 38.0)
+    start = controller.plan(target)
+    below = controller._step(start, cheaper=True)
+    stale = dataclasses.replace(start, predicted_bytes=0.5 * start.predicted_bytes)
+    measured = [(stale, int(start.predicted_bytes), target.value + PSNR_WINDOW + 0.2),
+                (below, math.ceil(below.predicted_bytes), target.value - 0.5)]  # the chain ends at it
+    found = controller._next_for_quality(target, measured, {_key(start), _key(below)})
+    assert found is not None
+    singles = {_key(p) for p in controller._single_steps(start) if p.predicted_bytes < start.predicted_bytes}
+    assert _key(found[0]) in singles - {_key(below)}
+
+
 def test_unreachable_targets_name_the_reachable_limit(controller):
     with pytest.raises(TargetUnreachableError, match=r"smallest file .* \(about [\d,]+ bytes"):
         controller.plan(Target("bytes", 100))
