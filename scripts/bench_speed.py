@@ -225,11 +225,10 @@ def main(argv: list[str] | None = None) -> int:
         for round_ in range(max(1, args.repeat)):
             enc = paired_encode(size, [*cli, "encode", str(ply), str(gsc), *point], gsc, ours_first=round_ % 2 == 1)
         if args.ladder:
-            from gscodec_shac.codec.rate_points import load_rate_point_file
+            from gscodec_shac.codec.rate_points import _split_reference, load_rate_point_file
 
-            stem = args.rate_point.split(":")[0]
-            for name in load_rate_point_file(ROOT / "rate_points" / f"{stem}.yaml"
-                                             if not stem.endswith(".yaml") else stem):
+            stem = args.rate_point.rsplit(":", 1)[0]
+            for name in load_rate_point_file(_split_reference(args.rate_point)[0]):
                 out = args.out / size / f"s{size}_{name}.gsc"
                 record(size, f"encode_{name}", measured([*cli, "encode", str(ply), str(out), "-r", f"{stem}:{name}",
                                                          "--sh", "pca", "--er", "0.97", "--force"], args.nice))

@@ -36,12 +36,12 @@ def main() -> None:
     controller = rc.RateController(cloud, views=views).fit()
     target = rc.Target("psnr", args.psnr)
     plan = controller._first_plan(target)
-    stream = controller._encode(plan, target)
-    measured = controller.measured_psnr(stream)
-    decoded = rc._decoded(stream, None)
+    # the encode the controller's _encode makes, kept here for its placement: the source row of every decoded row
     encoder = Encoder(plan.rate_point, sh_stage=controller.stage_, fit_stage=False, chunk_cache=controller._cache,
                       importance=controller.importance_)
-    encoder.encode(cloud)  # the same placement (cached): the source row of every decoded row
+    stream = encoder.encode(cloud)
+    measured = controller.measured_psnr(stream)
+    decoded = rc._decoded(stream, None)
     rows = []
     for name, model in controller.models_.items():
         predicted = float(model.mse[np.searchsorted(model.choices, plan.settings[name])])

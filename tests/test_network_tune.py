@@ -13,23 +13,17 @@ import torch
 
 from gscodec_shac.camera import look_at
 from gscodec_shac.deform import DeformArch, DeformNetwork, DynamicModel, load_dynamic_model, save_dynamic_model
-from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.render import Renderer
 
 ARCH = DeformArch(depth=2, width=24, xyz_freqs=3, t_freqs=2, time_net=True, time_width=8, time_out=4)
 
 
 def teacher_model(n: int = 80, seed: int = 4) -> DynamicModel:
-    """Random Gaussians and a float network with non-zero heads: the model the images are rendered from."""
-    rng = np.random.default_rng(seed)
-    cloud = GaussianCloud(
-        means=rng.uniform(-0.6, 0.6, (n, 3)).astype(np.float32),
-        scales=np.log(rng.uniform(0.06, 0.2, (n, 3))).astype(np.float32),
-        quats=rng.normal(size=(n, 4)).astype(np.float32),
-        opacities=rng.normal(1.5, 0.5, n).astype(np.float32),
-        sh_dc=rng.normal(0.0, 1.0, (n, 3)).astype(np.float32),
-        sh_rest=rng.normal(0.0, 0.1, (n, 15, 3)).astype(np.float32),
-    )
+    """Random Gaussians (``tests.test_dynamic.random_cloud``) and a float network with non-zero heads:
+    the model the images are rendered from."""
+    from tests.test_dynamic import random_cloud
+
+    cloud = random_cloud(n, seed)
     torch.manual_seed(seed)
     net = DeformNetwork(ARCH)
     with torch.no_grad():

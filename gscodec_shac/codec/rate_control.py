@@ -836,17 +836,17 @@ class RateController:
         else:
             start_psnr, start, _ = max(below, key=lambda r: r[0])
             other = None  # nothing measured above the window
+        # the start as the corrected rate models predict it now, like the plans around it (version 10: a
+        # plan's own bytes date from before its encode; bonsai's 37.5 dB first plan, predicted at 395,002
+        # bytes, coded 483,227, and every single step looked dearer than it: none was tried)
+        start = self._predict(start.settings)
         slope = 1.0
         if other is not None and abs(start.predicted_psnr - other[1].predicted_psnr) >= PSNR_SLOPE_SPREAD:
             slope = (start_psnr - other[0]) / (start.predicted_psnr - other[1].predicted_psnr)
             slope = min(max(slope, PSNR_SLOPES[0]), PSNR_SLOPES[1])
         stop = other[2] if other is not None else (0.0 if cheaper else math.inf)
-        # the start's bytes as the corrected rate models predict them now, like its single steps' (version 10:
-        # the plan's own prediction dates from before its encode; bonsai's 37.5 dB first plan, predicted at
-        # 395,002 bytes, coded 483,227, and every single step looked dearer than the start: none was tried)
-        now = self._predict(start.settings).predicted_bytes
         moves = self._chain(start, cheaper=cheaper, stop=stop) + [  # and every single step from the start
-            p for p in self._single_steps(start) if (p.predicted_bytes < now) == cheaper]
+            p for p in self._single_steps(start) if (p.predicted_bytes < start.predicted_bytes) == cheaper]
         moves = [p for p in moves if _key(p) not in tried]
         if not moves:
             return None
@@ -875,7 +875,7 @@ class RateController:
         """Plans one :meth:`_step` apart from ``plan`` (fewer bytes when ``cheaper``) until the
         predicted bytes pass ``stop`` (or after ``steps`` steps)."""
         out: list[Plan] = []
-        current: Plan | None = self._predict(plan.settings)
+        current: Plan | None = plan  # a step is predicted from the settings alone
         for _ in range(steps):
             current = self._step(current, cheaper=cheaper)
             if current is None:

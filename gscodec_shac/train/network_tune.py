@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
@@ -104,43 +104,55 @@ def tune_network(
     net = DeformNetwork(model.arch)
     net.load_weights(model.net.weights())
     grid = encoder_grid(model.arch, config.bits) if config.bits != 16 else None
-    _train_phase(net, model, capture, None, config.float_iterations, config.float_lr, config.float_lr_final,
+    cloud = model.cloud
+    tensors = (torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)) for a in (cloud.means, cloud.scales,
+                                                                                    cloud.quats))
+    gaussians = FrozenGaussians(*tensors, *(np.ascontiguousarray(a, dtype=np.float32)
+                                            for a in (cloud.opacities, cloud.sh_dc, cloud.sh_rest)))
+    _train_phase(net, gaussians, capture, None, config.float_iterations, config.float_lr, config.float_lr_final,
                  config, "float", callback)
     if grid is not None:
-        _train_phase(net, model, capture, grid, config.iterations, config.lr, config.lr_final, config, "grid",
+        _train_phase(net, gaussians, capture, grid, config.iterations, config.lr, config.lr_final, config, "grid",
                      callback)
         net.snap_to_grid(grid)
     return DynamicModel(model.cloud, net)
 
 
+class FrozenGaussians(NamedTuple):
+    """The canonical Gaussians as both phases use them: the deformation's inputs as tensors, the rest
+    as the rasteriser's float32 arrays."""
+
+    means: torch.Tensor
+    log_scales: torch.Tensor
+    quats: torch.Tensor
+    logits: np.ndarray
+    sh_dc: np.ndarray
+    sh_rest: np.ndarray
+
+
 def _train_phase(
-    net: DeformNetwork, model: DynamicModel, capture: DynamicCapture, grid: dict[str, int] | None, iterations: int,
-    lr: float, lr_final: float, config: NetworkTuneConfig, phase: str, callback: Callable[[TuneStep], None] | None,
+    net: DeformNetwork, gaussians: FrozenGaussians, capture: DynamicCapture, grid: dict[str, int] | None,
+    iterations: int, lr: float, lr_final: float, config: NetworkTuneConfig, phase: str,
+    callback: Callable[[TuneStep], None] | None,
 ) -> None:
     """``iterations`` Adam steps of ``net`` (through ``grid`` when given), one training view each in a
     seeded random order, the learning rate decaying log-linearly from ``lr`` to ``lr_final``."""
     if iterations == 0:
         return
-    cloud = model.cloud
     net.grid_bits = grid
     optimizer = torch.optim.Adam(net.parameters(), lr=lr, eps=1e-15)
     rng = np.random.default_rng(config.seed)
     renderer = DiffRenderer()
-    means = torch.from_numpy(np.ascontiguousarray(cloud.means, dtype=np.float32))
-    log_scales = torch.from_numpy(np.ascontiguousarray(cloud.scales, dtype=np.float32))
-    quats = torch.from_numpy(np.ascontiguousarray(cloud.quats, dtype=np.float32))
-    logits = np.ascontiguousarray(cloud.opacities, dtype=np.float32)
-    sh_dc = np.ascontiguousarray(cloud.sh_dc, dtype=np.float32)
-    sh_rest = np.ascontiguousarray(cloud.sh_rest, dtype=np.float32)
+    g = gaussians
     order: list[int] = []
     for it in range(1, iterations + 1):
         start = time.perf_counter()
         if not order:
             order = list(rng.permutation(len(capture.train_cameras)))
         view = int(order.pop())
-        outputs = deform_tensors(net, means, log_scales, quats, capture.train_times[view])
+        outputs = deform_tensors(net, g.means, g.log_scales, g.quats, capture.train_times[view])
         arrays = [np.ascontiguousarray(x.detach().numpy()) for x in outputs]
-        state = renderer.forward(*arrays, logits, sh_dc, sh_rest, capture.train_cameras[view], capture.background)
+        state = renderer.forward(*arrays, g.logits, g.sh_dc, g.sh_rest, capture.train_cameras[view], capture.background)
         truth = capture.train_images[view]
         loss, dl_dimage = render_loss_and_grad(state.image, truth, config.lambda_dssim, dtype=np.float32)
         grads = renderer.backward(state, dl_dimage, dtype=np.float32)
