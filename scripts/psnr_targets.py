@@ -41,7 +41,8 @@ def main() -> None:
         landed += inside
         print(json.dumps({"target": value, "psnr": round(outcome.measured_psnr, 3), "in_window": inside,
                           "encodes": outcome.encodes, "bytes": size, "bits_per_gaussian": round(8 * size / cloud.num_gaussians, 1),
-                          "trials": [[round(t["measured_psnr"], 2), t["bytes"]] for t in outcome.trials],
+                          "trials": [[round(t["measured_psnr"], 2), t["bytes"], t["chunks_coded"]] for t in outcome.trials],
+                          "chunks_coded": sum(t["chunks_coded"] for t in outcome.trials),
                           "seconds": round(time.perf_counter() - tic, 1), "fit_seconds": round(fit_seconds, 1)}), flush=True)
     print(f"{landed} of {len(args.targets.split(','))} targets in the window")
 

@@ -15,6 +15,7 @@ from gscodec_shac.codec.rate_control import (
     IMPORTANCE_SHARES,
     PSNR_WINDOW,
     SIZE_TOLERANCE,
+    VISIBILITY_BOUNDS,
     RateController,
     Target,
     TargetUnreachableError,
@@ -291,3 +292,43 @@ def test_near_a_size_target_the_next_plan_keeps_the_sh_base_qp(controller, small
         assert nxt.settings["sh"] == plan.settings["sh"] and nxt.settings != plan.settings
     else:
         assert nxt.settings == free.settings
+
+
+# ------------------------------------------------------- probe visibility
+def test_probe_visibility_is_the_probes_mean_importance_over_the_clouds(small_scene):
+    """Version 11: the probe's rows are a few places in the scene; their render sensitivity is weighed
+    by how much more (or less) they show than the average Gaussian, unless that is near 1."""
+    controller = RateController(small_scene.cloud, views=small_scene.cameras)
+    n = small_scene.cloud.num_gaussians
+    importance = np.ones(n)
+    rows = np.arange(0, n, 10)
+    controller.importance_ = importance.copy()
+    controller.importance_[rows] = 3.0  # the probe shows 3x as much as the others
+    ratio = 3.0 / np.mean(controller.importance_)
+    assert controller._probe_visibility(rows) == pytest.approx(ratio)
+    controller.importance_[rows] = 1.1  # inside the band: the proxy's scatter, taken as 1
+    assert controller._probe_visibility(rows) == 1.0
+    controller.importance_[rows] = 0.4  # less visible than the rest
+    assert controller._probe_visibility(rows) == pytest.approx(0.4 / np.mean(controller.importance_))
+    controller.importance_[rows] = 1e4  # clipped
+    assert controller._probe_visibility(rows) == VISIBILITY_BOUNDS[1]
+    assert controller._probe_visibility(np.arange(n)) == 1.0  # the probe is the cloud
+    controller.importance_ = np.zeros(n)  # nothing visible: no evidence
+    assert controller._probe_visibility(rows) == 1.0
+
+
+def test_the_render_sensitivities_are_divided_by_the_probes_visibility(small_scene, monkeypatch):
+    """The QP attributes' rendered errors scale by 1 / visibility; the positions (rendered with the
+    whole cloud moved) and the pruning (exact renders) do not."""
+    def fitted(visibility: float) -> RateController:
+        monkeypatch.setattr(RateController, "_probe_visibility", lambda self, rows: visibility)
+        return RateController(small_scene.cloud, views=small_scene.cameras, importance_shares=(),
+                              workers=2).fit()
+
+    plain, visible = fitted(1.0), fitted(2.0)
+    assert visible.probe_visibility_ == 2.0
+    for name in ("opacity", "rotation", "scale", "sh_dc", "sh"):
+        np.testing.assert_allclose(visible.models_[name].mse, plain.models_[name].mse / 2.0, rtol=1e-9)
+        np.testing.assert_array_equal(visible.models_[name].bytes, plain.models_[name].bytes)
+    np.testing.assert_allclose(visible.models_["positions"].mse, plain.models_["positions"].mse, rtol=1e-9)
+    assert [p[2] for p in visible.prune_] == [p[2] for p in plain.prune_]
