@@ -100,6 +100,7 @@ def test_psnr_target_lands_within_its_window(controller, psnr):
     assert len(trials) == outcome.encodes <= controller.max_encodes
     assert trials[-1]["bytes"] == len(outcome.stream.to_bytes())  # the last encode is the one kept
     assert all({"predicted_psnr", "model_psnr", "measured_psnr", "predicted_bytes"} <= set(t) for t in trials)
+    assert outcome.summary()["probe_visibility"] == round(controller.probe_visibility_, 3) == 1.0  # the probe is the cloud
     # the file kept is the smallest that met the target (a bigger one in the window does not stop the search)
     assert len(outcome.stream.to_bytes()) == min(t["bytes"] for t in trials if t["measured_psnr"] >= psnr)
 

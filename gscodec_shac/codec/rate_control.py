@@ -204,6 +204,8 @@ class Outcome:
     measured_psnr: float | None = None
     #: One row per real encode: predicted and measured bytes and PSNR (the models' prediction error).
     trials: list[dict[str, float]] = field(default_factory=list)
+    #: The probe's visibility the render sensitivities were weighed by (1: not weighed; version 11).
+    probe_visibility: float = 1.0
 
     def summary(self) -> dict[str, Any]:
         """What ``encode --json`` and the header report about the choice."""
@@ -217,6 +219,7 @@ class Outcome:
             "predicted_psnr": round(self.plan.predicted_psnr, 3),
             "encodes": self.encodes,
             "seconds": {k: round(v, 3) for k, v in self.seconds.items()},
+            "probe_visibility": round(self.probe_visibility, 3),
         }
         if self.measured_psnr is not None:
             out["measured_psnr"] = round(self.measured_psnr, 3)
@@ -812,7 +815,7 @@ class RateController:
         stream, plan, measured = best
         if measured is None:
             measured = self.measured_psnr(stream)
-        return Outcome(stream, plan, target, len(trials), dict(self.seconds_), measured, trials)
+        return Outcome(stream, plan, target, len(trials), dict(self.seconds_), measured, trials, self.probe_visibility_)
 
     def _first_plan(self, target: Target) -> Plan:
         """The hull's plan for ``target``, aimed at the middle of its window when it can; for a size,
