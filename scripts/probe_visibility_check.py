@@ -4,8 +4,9 @@ synthetic scene whose probe is made more visible than the rest of the cloud.
 The cloud is ``gscodec-shac synthetic``'s scene of N Gaussians with a probe of ``--probe``
 Gaussians; every Gaussian outside the probe's rows has its log-scales lowered by ``--shrink``
 (smaller, so less visible), which makes the probe's mean importance 1.3-1.5x the cloud's. For each
-target: the PSNR reached, the encodes and the bytes, once with the weighting (version 11) and once
-with the visibility forced to 1 (version 10's models). docs/rate_control.md, "Controller version 11".
+target: the PSNR reached, the encodes and the bytes, once with the sensitivities weighed by the
+probe's visibility (``"visibility": "weighed"``, version 11 on) and once with it forced to 1
+(``"not weighed"``). docs/rate_control.md, "Controller version 11".
 
     python scripts/probe_visibility_check.py --shrink 0.7,1.2 --targets 33,34,36,38,40
 """
@@ -39,7 +40,7 @@ def main() -> None:
         scales = scene.cloud.scales.copy()
         scales[outside] -= shrink
         cloud = scene.cloud.replace(scales=scales)
-        for version, visibility in (("11", measured_visibility), ("10", lambda self, rows: 1.0)):
+        for label, visibility in (("weighed", measured_visibility), ("not weighed", lambda self, rows: 1.0)):
             rc.RateController._probe_visibility = visibility
             try:
                 controller = rc.RateController(cloud, views=scene.cameras, workers=2).fit()
@@ -52,7 +53,7 @@ def main() -> None:
                 outcome = controller.encode(rc.Target("psnr", target))
                 runs.append({"target": target, "psnr": round(outcome.measured_psnr, 2), "encodes": outcome.encodes,
                              "bytes": outcome.stream.total_bytes()})
-            print(json.dumps({"shrink": shrink, "version": version, "probe_importance_ratio": round(ratio, 3),
+            print(json.dumps({"shrink": shrink, "visibility": label, "probe_importance_ratio": round(ratio, 3),
                               "encodes": sum(r["encodes"] for r in runs), "runs": runs}), flush=True)
 
 

@@ -7,7 +7,7 @@ the controller's calibration views) is set beside the MSE the model predicted fo
 A ratio above 1: the model overstates that attribute's error (docs/benchmarks.md, "Every ladder
 point and a PSNR target at 1M").
 
-    python scripts/psnr_model_check.py ../out/bench/250k/s250k.ply --psnr 52 [--cameras cameras.json]
+    python scripts/psnr_model_check.py ../out/bench/250k/s250k.ply --psnr 52 [--cameras cameras.json] [--background 1,1,1]
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ def main() -> None:
     parser.add_argument("model", help="a static model file (PLY, or any format the codec reads)")
     parser.add_argument("--psnr", type=float, required=True, help="the PSNR target (dB against the uncompressed model)")
     parser.add_argument("--cameras", help="a camera file (default: the controller's orbit views)")
+    parser.add_argument("--background", default="0,0,0", help="r,g,b in [0, 1] (1,1,1 for NeRF-synthetic)")
     parser.add_argument("--json", help="write the rows here too")
     args = parser.parse_args()
 
@@ -33,7 +34,8 @@ def main() -> None:
 
     cloud, _ = read_model(args.model)
     views = load_cameras(args.cameras) if args.cameras else None
-    controller = rc.RateController(cloud, views=views).fit()
+    background = tuple(float(v) for v in args.background.split(","))
+    controller = rc.RateController(cloud, views=views, background=background).fit()
     target = rc.Target("psnr", args.psnr)
     plan = controller._first_plan(target)
     # the encode the controller's _encode makes, kept here for its placement: the source row of every decoded row

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -333,3 +334,39 @@ def test_the_render_sensitivities_are_divided_by_the_probes_visibility(small_sce
         np.testing.assert_array_equal(visible.models_[name].bytes, plain.models_[name].bytes)
     np.testing.assert_allclose(visible.models_["positions"].mse, plain.models_["positions"].mse, rtol=1e-9)
     assert [p[2] for p in visible.prune_] == [p[2] for p in plain.prune_]
+
+
+# ------------------------------------------------- rescale by the first encode
+def test_a_psnr_targets_models_are_rescaled_by_the_first_encodes_renders(controller):
+    """Version 12: after a PSNR target's first encode, each attribute holding a fair share of the
+    plan's error predicts, at the plan's QP, what the whole cloud rendered with that attribute as
+    decoded; the fitted models come back after the target."""
+    from gscodec_shac.codec.rate_control import RESCALE_SHARE, _decoded, _with_decoded
+
+    fitted = {name: model.mse.copy() for name, model in controller.models_.items()}
+    target = Target("psnr", 36.0)
+    plan = controller._first_plan(target)
+    decoded = _decoded(controller._encode(plan, target), None)
+    try:
+        count = controller._rescale_models(plan, decoded)
+        assert count >= 2
+        checked = 0
+        for name in ("opacity", "rotation", "scale", "sh_dc", "sh"):
+            index = np.searchsorted(controller.models_[name].choices, plan.settings[name])
+            before = fitted[name][index]
+            if before < RESCALE_SHARE * plan.predicted_mse or (name == "sh" and plan.settings["dc_only"]):
+                np.testing.assert_array_equal(controller.models_[name].mse, fitted[name])  # not rendered
+                continue
+            same = None if name in ("rotation", "scale") else slice(None)
+            rendered = controller._rendered_mse(_with_decoded(controller.cloud, name, controller._last_order, decoded), same)
+            assert controller.models_[name].mse[index] == pytest.approx(rendered, rel=1e-9)
+            np.testing.assert_allclose(controller.models_[name].mse / fitted[name], rendered / before, rtol=1e-9)
+            checked += 1
+        assert checked == count
+    finally:
+        for name, mse in fitted.items():
+            controller.models_[name] = dataclasses.replace(controller.models_[name], mse=mse)
+    outcome = controller.encode(target)
+    assert all(np.array_equal(controller.models_[name].mse, fitted[name]) for name in fitted)
+    if outcome.encodes > 1:
+        assert outcome.trials[0]["rescaled"] >= 1

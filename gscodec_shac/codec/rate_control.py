@@ -23,7 +23,9 @@ each attribute on its own:
 * **render sensitivity** ``k_a``: the rendered MSE per unit attribute MSE, from renders of
   the cloud with that attribute of the probe's Gaussians as the codec decoded it (QP 30),
   on a few views (the scene's cameras, else orbit views), against renders of the
-  uncompressed cloud;
+  uncompressed cloud, weighed by how visible the probe's Gaussians are where that is clearly
+  off (version 11); a PSNR target rescales it per attribute by its first encode's renders
+  (version 12);
 * **pruning**: the rendered MSE of the cloud without its Gaussians below each opacity
   threshold, or without all but its most important ones (:mod:`.importance`, at each share of
   :data:`IMPORTANCE_SHARES`), by exact renders; pruning keeps a share ``f`` of the Gaussians and scales every
@@ -79,8 +81,9 @@ TEMPLATE = "shac_auto:template"
 #: Version 8 (the PSNR target's chain, docs/rate_control.md) kept the constant at 7; 9 is the size
 #: target's fill of the first plan and its SH-keeping corrections (:data:`FINE_BAND`); 10 compares a
 #: PSNR target's single steps with the start's bytes as the corrected models predict them now; 11 weighs
-#: the probe's rendered error by how visible its Gaussians are (:meth:`RateController._probe_visibility`).
-VERSION = 11
+#: the probe's rendered error by how visible its Gaussians are (:meth:`RateController._probe_visibility`);
+#: 12 rescales a PSNR target's models by the renders of its first encode (:meth:`RateController._rescale_models`).
+VERSION = 12
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
 #: QPs at which the probe is encoded; the models interpolate between them (and extrapolate).
@@ -116,6 +119,11 @@ PSNR_WINDOW = 0.3
 #: a PSNR target's window, and the spread of predictions (dB) it needs (:meth:`RateController._next_for_quality`).
 PSNR_SLOPES = (0.25, 1.5)
 PSNR_SLOPE_SPREAD = 0.1
+#: Whether a PSNR target rescales the attribute models by the renders of its first encode (version 12) ...
+RESCALE_RENDERS = True
+#: ... each by a factor within these bounds, those that hold at least this share of the plan's error.
+RESCALE_BOUNDS = (0.1, 10.0)
+RESCALE_SHARE = 0.05
 #: The probe's visibility against the whole cloud's (:meth:`RateController._probe_visibility`) is taken as 1
 #: inside this band (the proxy's own scatter on the trained scenes) ...
 VISIBILITY_BAND = (0.8, 1.25)
@@ -288,6 +296,7 @@ class RateController:
         self._references: list[np.ndarray] = []
         self._covariances: np.ndarray | None = None  # the cloud's 3D covariances (for renders of its variants)
         self._exact: dict[str, dict[int, float]] = {}
+        self._last_order: np.ndarray | None = None  # source rows of the last encode's decoded rows
         self._probe_decoded: tuple[np.ndarray, GaussianCloud] | None = None  # (rows, decoded) at SENSITIVITY_QP
         self._sh_points: dict[int, dict[int, float]] = {}  # SH feature (-1: side information) -> {QP: bytes}
         #: the rendered MSE of each attribute of the probe as decoded (the sensitivities' numerators)
@@ -765,10 +774,20 @@ class RateController:
         re-sorts the grid, so no coded chunk could be reused). A size target moves the QPs by
         single steps, the cheapest error per byte first, with the rate model scaled by what the
         encodes measured; a PSNR target walks a chain of single QP steps from the smallest file
-        above its window, the PSNR estimated from the encodes (:meth:`_next_for_quality`).
+        above its window, the PSNR estimated from the encodes (:meth:`_next_for_quality`), with each
+        attribute's error model rescaled by what its first encode rendered (:meth:`_rescale_models`;
+        the fitted models are back when the target is done).
         """
         if not self.models_:
             self.fit()
+        fitted = dict(self.models_)  # a PSNR target rescales them for itself (version 12)
+        try:
+            return self._encode_to(target)
+        finally:
+            self.models_ = fitted
+
+    def _encode_to(self, target: Target) -> Outcome:
+        """:meth:`encode` with the models fitted."""
         tic = time.perf_counter()
         self._exact = {}  # bytes measured per attribute and setting
         plan: Plan | None = self._first_plan(target)
@@ -798,7 +817,8 @@ class RateController:
                 else:
                     plan = self._next_for_size(plan, size, target, tried)
             else:
-                measured = self.measured_psnr(stream)
+                decoded = _decoded(stream, self.workers)
+                measured = _psnr(self._rendered_mse(decoded))
                 trials[-1]["measured_psnr"] = measured
                 measured_plans.append((plan, size, measured))
                 if measured >= target.value and (best is None or size < best[0].total_bytes()):
@@ -806,7 +826,10 @@ class RateController:
                 if best is not None and best[2] <= target.value + PSNR_WINDOW:  # the smallest file that meets it lands
                     plan = None
                 else:
+                    if len(trials) == 1 and RESCALE_RENDERS:  # the models, by what the first encode rendered
+                        trials[-1]["rescaled"] = self._rescale_models(plan, decoded)
                     plan, expected = self._next_for_quality(target, measured_plans, tried) or (None, math.nan)
+                decoded = None
             trials[-1]["seconds"] = time.perf_counter() - started
         bar.close()
         self.seconds_["encode"] = time.perf_counter() - tic
@@ -850,6 +873,7 @@ class RateController:
         encoder = Encoder(plan.rate_point, sh_stage=self.stage_, fit_stage=False, workers=self.workers,
                           progress=self.progress, chunk_cache=self._cache, importance=self.importance_)
         stream = encoder.encode(self.cloud)
+        self._last_order = encoder.order_
         stream.header["rate_control"] = {"target": {"kind": target.kind, "value": target.value},
                                          "template": self.template.name}
         return stream
@@ -883,8 +907,9 @@ class RateController:
         # bytes, coded 483,227, and every single step looked dearer than it: none was tried)
         start = self._predict(start.settings)
         slope = 1.0
-        if other is not None and abs(start.predicted_psnr - other[1].predicted_psnr) >= PSNR_SLOPE_SPREAD:
-            slope = (start_psnr - other[0]) / (start.predicted_psnr - other[1].predicted_psnr)
+        other_psnr = self._predict(other[1].settings).predicted_psnr if other is not None else math.nan
+        if other is not None and abs(start.predicted_psnr - other_psnr) >= PSNR_SLOPE_SPREAD:
+            slope = (start_psnr - other[0]) / (start.predicted_psnr - other_psnr)
             slope = min(max(slope, PSNR_SLOPES[0]), PSNR_SLOPES[1])
         stop = other[2] if other is not None else (0.0 if cheaper else math.inf)
         moves = self._chain(start, cheaper=cheaper, stop=stop) + [  # and every single step from the start
@@ -963,6 +988,33 @@ class RateController:
             if step.predicted_bytes <= limit:
                 return step
         return None
+
+    def _rescale_models(self, plan: Plan, decoded: GaussianCloud) -> int:
+        """Rescale each QP attribute's rendered-error model by what the first encode of a PSNR target
+        rendered (version 12): the whole cloud with only that attribute as ``decoded`` (the encode of
+        ``plan``), against the model at the plan's QP. The probe's render sensitivities are estimated
+        on a few places of the scene and can be off by 2-4x per attribute, differently for each
+        (bonsai 0.74-1.71, snowmiku 1.7-3.7 at 40 dB); the search then walks with each attribute's own
+        error. Attributes holding under :data:`RESCALE_SHARE` of the plan's predicted error are not
+        rendered (a 1M cloud's render set costs about a second), and the SH features are left alone
+        under a DC-only bar (their render holds its zeroing). Returns how many attributes were rescaled."""
+        order = self._last_order
+        count = 0
+        for name in QP_ATTRIBUTES:
+            model = self.models_.get(name)
+            if model is None or (name == "sh" and plan.settings.get("dc_only", 0)):
+                continue
+            predicted = float(model.mse[np.searchsorted(model.choices, plan.settings[name])])
+            if predicted < RESCALE_SHARE * plan.predicted_mse:  # even 2x off, it moves the PSNR by < 0.2 dB
+                continue
+            same_shapes = None if name in ("rotation", "scale") else slice(None)
+            rendered = self._rendered_mse(_with_decoded(self.cloud, name, order, decoded), same_shapes)
+            if predicted <= 0 or rendered <= 0:
+                continue
+            factor = min(max(rendered / predicted, RESCALE_BOUNDS[0]), RESCALE_BOUNDS[1])
+            self.models_[name] = AttributeModel(name, model.choices, model.bytes, model.mse * factor)
+            count += 1
+        return count
 
     def measured_psnr(self, stream: Bitstream) -> float:
         """PSNR of the decoded stream against the uncompressed model on the controller's views."""
