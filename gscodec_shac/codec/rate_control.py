@@ -119,9 +119,8 @@ PSNR_WINDOW = 0.3
 #: a PSNR target's window, and the spread of predictions (dB) it needs (:meth:`RateController._next_for_quality`).
 PSNR_SLOPES = (0.25, 1.5)
 PSNR_SLOPE_SPREAD = 0.1
-#: Whether a PSNR target rescales the attribute models by the renders of its first encode (version 12) ...
-RESCALE_RENDERS = True
-#: ... each by a factor within these bounds, those that hold at least this share of the plan's error.
+#: A PSNR target rescales each attribute model by the renders of its first encode (version 12) by a
+#: factor within these bounds, those models that hold at least this share of the plan's error.
 RESCALE_BOUNDS = (0.1, 10.0)
 RESCALE_SHARE = 0.05
 #: The probe's visibility against the whole cloud's (:meth:`RateController._probe_visibility`) is taken as 1
@@ -826,7 +825,7 @@ class RateController:
                 if best is not None and best[2] <= target.value + PSNR_WINDOW:  # the smallest file that meets it lands
                     plan = None
                 else:
-                    if len(trials) == 1 and RESCALE_RENDERS:  # the models, by what the first encode rendered
+                    if len(trials) == 1:  # the models, by what the first encode rendered
                         trials[-1]["rescaled"] = self._rescale_models(plan, decoded)
                     plan, expected = self._next_for_quality(target, measured_plans, tried) or (None, math.nan)
                 decoded = None
