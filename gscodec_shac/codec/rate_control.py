@@ -123,6 +123,9 @@ PSNR_SLOPE_SPREAD = 0.1
 #: factor within these bounds, those models that hold at least this share of the plan's error.
 RESCALE_BOUNDS = (0.1, 10.0)
 RESCALE_SHARE = 0.05
+#: ... when that encode measured within this many dB of the window's middle (a factor measured at one
+#: QP mix holds near it: snowmiku's 45 dB target, first encoded at 48.63 dB, ended in a 3.7% bigger file).
+RESCALE_WITHIN = 2.0
 #: The probe's visibility against the whole cloud's (:meth:`RateController._probe_visibility`) is taken as 1
 #: inside this band (the proxy's own scatter on the trained scenes) ...
 VISIBILITY_BAND = (0.8, 1.25)
@@ -825,7 +828,8 @@ class RateController:
                 if best is not None and best[2] <= target.value + PSNR_WINDOW:  # the smallest file that meets it lands
                     plan = None
                 else:
-                    if len(trials) == 1:  # the models, by what the first encode rendered
+                    if len(trials) == 1 and abs(measured - target.value - PSNR_WINDOW / 2) <= RESCALE_WITHIN:
+                        # the models, by what the first encode rendered, when it came near enough
                         trials[-1]["rescaled"] = self._rescale_models(plan, decoded)
                     plan, expected = self._next_for_quality(target, measured_plans, tried) or (None, math.nan)
                 decoded = None
@@ -990,8 +994,9 @@ class RateController:
 
     def _rescale_models(self, plan: Plan, decoded: GaussianCloud) -> int:
         """Rescale each QP attribute's rendered-error model by what the first encode of a PSNR target
-        rendered (version 12): the whole cloud with only that attribute as ``decoded`` (the encode of
-        ``plan``), against the model at the plan's QP. The probe's render sensitivities are estimated
+        rendered, when it measured within :data:`RESCALE_WITHIN` of the window's middle (version 12):
+        the whole cloud with only that attribute as ``decoded`` (the encode of ``plan``), against the
+        model at the plan's QP. The probe's render sensitivities are estimated
         on a few places of the scene and can be off by 2-4x per attribute, differently for each
         (bonsai 0.74-1.71, snowmiku 1.7-3.7 at 40 dB); the search then walks with each attribute's own
         error. Attributes holding under :data:`RESCALE_SHARE` of the plan's predicted error are not
