@@ -49,7 +49,7 @@ def main() -> None:
         predicted = float(model.mse[np.searchsorted(model.choices, plan.settings[name])])
         row = {"attribute": name, "setting": plan.settings[name], "model_mse": predicted}
         if name != "positions":  # positions: the model is the quantisation step's, not a render
-            rendered = controller._rendered_mse(rc._with_decoded(cloud, name, encoder.order_, decoded))
+            rendered = controller._rendered_with_decoded(name, encoder.order_, decoded)
             row.update(rendered_mse=rendered, ratio=predicted / max(rendered, 1e-30))
         rows.append(row)
     print(f"first plan {plan.settings}: predicted {plan.predicted_psnr:.2f} dB, measured {measured:.2f} dB")

@@ -476,8 +476,7 @@ class RateController:
                          for j, (_, _, prune_mse) in enumerate(self.prune_))
 
         without = {qp: float(rates["sh"][PROBE_QPS.index(qp)]) for qp in RATIO_QPS}  # the probe's own encodes
-        return fit_choices(self.cloud, without, lambda value, qp: sizes[(value, qp)], zeroing_errors, bar=bar,
-                           flags_of=flags)
+        return fit_choices(without, flags, sizes, zeroing_errors, bar=bar)
 
     def _dc_factor(self, settings: dict[str, int], name: str) -> float:
         """The factor of attribute ``name``'s bytes under the settings' DC-only bar."""
@@ -591,8 +590,7 @@ class RateController:
             # the probe's error spread over the whole cloud, as visible as the probe's Gaussians (version 11)
             error = max(float(mse[middle]), 1e-12) * share * self.probe_visibility_
             if name not in rendered:
-                same_shapes = None if name in ("rotation", "scale") else slice(None)  # the covariances stay
-                rendered[name] = self._rendered_mse(_with_decoded(self.cloud, name, rows, decoded), same_shapes)
+                rendered[name] = self._rendered_with_decoded(name, rows, decoded)
             out[name] = rendered[name] / error
             if bar is not None:
                 bar.update(1)
@@ -643,6 +641,11 @@ class RateController:
         sizes = [len(chunks[bits]) for bits in POSITION_BITS]
         mses = [sensitivity * _position_step_mse(self.cloud, bits) for bits in POSITION_BITS]
         return AttributeModel("positions", np.array(POSITION_BITS), np.array(sizes, float), np.array(mses))
+
+    def _rendered_with_decoded(self, name: str, rows: np.ndarray, decoded: GaussianCloud) -> float:
+        """Rendered MSE of the cloud with attribute ``name`` of its ``rows`` as ``decoded`` (row for row)."""
+        same_shapes = None if name in ("rotation", "scale") else slice(None)  # else the covariances stay
+        return self._rendered_mse(_with_decoded(self.cloud, name, rows, decoded), same_shapes)
 
     def _rendered_mse(self, cloud: GaussianCloud, rows: np.ndarray | slice | None = None) -> float:
         """Rendered MSE of ``cloud`` against the references; ``rows``: ``cloud``'s rows of :attr:`cloud` when
@@ -1011,8 +1014,7 @@ class RateController:
             predicted = float(model.mse[np.searchsorted(model.choices, plan.settings[name])])
             if predicted < RESCALE_SHARE * plan.predicted_mse:  # even 2x off, it moves the PSNR by < 0.2 dB
                 continue
-            same_shapes = None if name in ("rotation", "scale") else slice(None)
-            rendered = self._rendered_mse(_with_decoded(self.cloud, name, order, decoded), same_shapes)
+            rendered = self._rendered_with_decoded(name, order, decoded)
             if predicted <= 0 or rendered <= 0:
                 continue
             factor = min(max(rendered / predicted, RESCALE_BOUNDS[0]), RESCALE_BOUNDS[1])

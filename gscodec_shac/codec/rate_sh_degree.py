@@ -87,30 +87,29 @@ def kept_flags(energy: np.ndarray, kept: np.ndarray, bar: float) -> np.ndarray:
 
 
 def fit_choices(
-    cloud: GaussianCloud,
     without: Mapping[int, float],
-    encode_probe: Callable[[float, int], float],
+    flags_of: Mapping[float, np.ndarray],
+    probe_bytes: Mapping[tuple[float, int], float],
     zeroing_errors: Callable[[float], tuple[float, ...]],
     bars: tuple[float, ...] = DC_ONLY_BARS,
     bar: Any = None,
-    flags_of: Mapping[float, np.ndarray] | None = None,
 ) -> list[DcOnlyChoice]:
     """The measured :class:`DcOnlyChoice` of every bar in ``bars`` (bar 0 first, unchanged).
 
     ``without``: the SH bytes of the probe without a bar at each of :data:`RATIO_QPS` (the rate
-    model's own probe encodes); ``encode_probe(bar, qp)``: those bytes with the bar, scaled alike;
-    ``zeroing_errors(bar)``: the zeroing error under each pruning candidate (``bar``: a progress bar
-    advanced once per bar); ``flags_of``: each bar's :func:`whole_cloud_flags` when the caller has
-    them already (else computed here)."""
+    model's own probe encodes); ``flags_of``: each bar's :func:`whole_cloud_flags`;
+    ``probe_bytes[(bar, qp)]``: the probe's SH bytes with the bar, scaled alike (for each bar that
+    flags something); ``zeroing_errors(bar)``: the zeroing error under each pruning candidate
+    (``bar``: a progress bar advanced once per bar)."""
     out = [DcOnlyChoice(0.0)]
     if not any(value > 0 for value in bars):
         return out
     for value in bars:
         if value <= 0:
             continue
-        flags = flags_of[value] if flags_of is not None else whole_cloud_flags(cloud, value)
+        flags = flags_of[value]
         if flags.any():
-            measured = [encode_probe(value, qp) for qp in RATIO_QPS]
+            measured = [probe_bytes[(value, qp)] for qp in RATIO_QPS]
             out.append(DcOnlyChoice(
                 bar=value, share=float(flags.mean()), qps=RATIO_QPS,
                 bytes_ratios=tuple(b / max(without[q], 1e-9) for b, q in zip(measured, RATIO_QPS)),

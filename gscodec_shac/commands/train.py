@@ -82,7 +82,6 @@ def run(args: argparse.Namespace) -> int:
     import json
     import time
 
-
     from gscodec_shac.atomic import check_outputs, protect_inputs, write_atomic
     from gscodec_shac.errors import GscodecError, OutputError
     from gscodec_shac.train.data import load_capture
