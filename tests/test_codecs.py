@@ -424,6 +424,42 @@ def test_a_hung_x265_worker_is_killed_and_reported_after_the_last_attempt():
         x265_processes.encode(frames, "gray10le", options, timeout=1e-4)
 
 
+def test_an_x265_that_stops_coming_back_is_killed_long_before_the_piece_allowance():
+    from gscodec_shac.codec.grid import x265_processes
+
+    frames = list(_x265_planes()[:1])
+    options = {"preset": "slow", "x265-params": "qp=30:info=0:log-level=error:frame-threads=1"}
+    with pytest.raises(x265_processes.X265WorkerError, match="3 times: x265 did not come back for 0 s"), \
+            pytest.warns(RuntimeWarning, match="did not come back for 0 s"):
+        x265_processes.encode(frames, "gray10le", options, timeout=600, stall=1e-4)
+
+
+def test_the_x265_worker_reports_each_frame_taken_and_each_packet_flushed():
+    from gscodec_shac.codec.grid import x265_processes
+    from gscodec_shac.codec.grid.hevc import encode_frames
+
+    frames = list(_x265_planes())
+    options = {"preset": "fast", "x265-params": "qp=30:info=0:log-level=error:frame-threads=1"}
+    calls = []
+    expected = encode_frames(frames, "gray10le", options, progress=lambda: calls.append(1))
+    assert expected == encode_frames(frames, "gray10le", options)  # reporting changes nothing
+    assert len(frames) + 1 <= len(calls) <= 2 * len(frames)  # every frame taken, then the flushed packets
+    x265_processes.shutdown()
+    assert x265_processes.encode(frames, "gray10le", options) == expected
+    with x265_processes._lock:
+        (worker,) = x265_processes._idle
+    assert worker.ticks == len(calls)
+
+
+def test_a_step_of_x265_may_take_its_largest_frame_times_the_load():
+    from gscodec_shac.codec.grid.x265_processes import PER_SAMPLE, STALL_BASE, piece_timeout, stall_timeout
+
+    idle = stall_timeout(10**6, load=0.3, cores=2)
+    assert idle == STALL_BASE + PER_SAMPLE * 10**6 == stall_timeout(10**6, load=2.0, cores=2)
+    assert stall_timeout(10**6, load=13.0, cores=2) == pytest.approx(6.5 * idle)
+    assert stall_timeout(10**6, load=1.0, cores=2) < piece_timeout(10**6, load=1.0, cores=2)
+
+
 def test_a_loaded_machine_gives_a_piece_longer_before_its_worker_is_thought_hung():
     from gscodec_shac.codec.grid.x265_processes import BASE_TIMEOUT, PER_SAMPLE, piece_timeout
 

@@ -43,7 +43,7 @@ import re
 import reprlib
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from typing import Iterator
+from typing import Callable, Iterator
 
 import av
 import numpy as np
@@ -309,9 +309,16 @@ def _decoded_frames(stream: bytes, index: int, threads: int = 1) -> Iterator[av.
         raise BitstreamError(f"hevc stream {index} is corrupt: {exc}") from None
 
 
-def encode_frames(frames: list[np.ndarray], pix_fmt: str, options: dict[str, str]) -> bytes:
-    """One x265 stream of ``frames`` ((H, W) or (3, H, W) arrays) with the codec ``options``."""
+def encode_frames(
+    frames: list[np.ndarray], pix_fmt: str, options: dict[str, str], progress: Callable[[], None] | None = None
+) -> bytes:
+    """One x265 stream of ``frames`` ((H, W) or (3, H, W) arrays) with the codec ``options``.
+
+    ``progress`` is called each time x265 comes back: after every frame it takes and every packet
+    of the flush, so a caller can tell a slow piece from a hung encoder (:mod:`.x265_processes`).
+    """
     height, width = frames[0].shape[-2:]
+    tick = progress if progress is not None else (lambda: None)
     try:
         with X265Encoder(width, height, pix_fmt, options) as encoder:
             packets = []
@@ -319,7 +326,10 @@ def encode_frames(frames: list[np.ndarray], pix_fmt: str, options: dict[str, str
                 frame = _frame_from_planes(array.reshape((-1, height, width)), pix_fmt)
                 frame.pts = index
                 packets += encoder.encode(frame)
-            packets += encoder.encode(None)
+                tick()
+            for packet in encoder.flush():
+                packets.append(packet)
+                tick()
     except av.FFmpegError as exc:
         raise ValidationError(
             f"hevc: x265 refused the settings {options} for a {width}x{height} {pix_fmt} frame: {exc}"
@@ -356,6 +366,10 @@ class X265Encoder:
     def encode(self, frame: av.VideoFrame | None) -> list[av.Packet]:
         """Packets x265 gives back for ``frame`` (``None`` flushes)."""
         return self._ctx.encode(frame)
+
+    def flush(self) -> Iterator[av.Packet]:
+        """The packets x265 still holds, one at a time as it codes them."""
+        return self._ctx.encode_lazy(None)
 
     def __enter__(self) -> "X265Encoder":
         return self

@@ -2,7 +2,8 @@
 
 Each request is a length-prefixed pickle ``([(shape, dtype), ...], pix_fmt, options)``
 followed by each frame's samples (C order), read straight into its array; each reply a
-length-prefixed pickle ``("ok", stream bytes)`` or ``("error", exception)``. The process
+length-prefixed pickle ``("ok", stream bytes)`` or ``("error", exception)``, after a
+:data:`.TICK` (an empty message) each time x265 takes a frame or gives back a packet. The process
 ends quietly when its stdin closes or its reader is gone (the caller ended or was killed);
 it ignores SIGINT (a Ctrl-C reaches the whole process group: the caller handles it and closes
 the pipes). Its file descriptor 1 is pointed at stderr, so nothing a library prints can
@@ -18,7 +19,7 @@ import sys
 
 import numpy as np
 
-from gscodec_shac.codec.grid.x265_processes import LENGTH, read_into
+from gscodec_shac.codec.grid.x265_processes import LENGTH, TICK, read_into
 
 
 def _read_message(fd: int) -> bytearray | None:
@@ -50,7 +51,9 @@ def main() -> int:
         if not all(read_into(requests, frame) for frame in frames):
             break
         try:
-            reply: tuple = ("ok", encode_frames(frames, pix_fmt, options))
+            reply: tuple = ("ok", encode_frames(frames, pix_fmt, options, progress=lambda: _write_all(replies, TICK)))
+        except OSError:  # a tick found the caller gone (BrokenPipeError) or its pipe broken
+            return 0
         except Exception as exc:  # sent back and raised in the caller
             reply = ("error", exc)
         data = pickle.dumps(reply, protocol=pickle.HIGHEST_PROTOCOL)
