@@ -95,6 +95,7 @@ class _Worker:
             [sys.executable, "-m", "gscodec_shac.codec.grid.x265_worker"],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=None, close_fds=True,
         )
+        self.ticks = 0  # the TICKs of the last piece
 
     def call(self, frames: list[np.ndarray], pix_fmt: str, options: dict[str, str], timeout: float,
              stall: float | None = None) -> Any:
