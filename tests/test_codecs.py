@@ -434,6 +434,34 @@ def test_an_x265_that_stops_coming_back_is_killed_long_before_the_piece_allowanc
         x265_processes.encode(frames, "gray10le", options, timeout=600, stall=1e-4)
 
 
+def test_a_silent_x265_worker_is_replaced_after_its_stall_limit_and_the_piece_coded_again(monkeypatch):
+    import os
+    import signal
+    import time
+
+    from gscodec_shac.codec.grid import x265_processes
+    from gscodec_shac.codec.grid.hevc import encode_frames
+
+    frames = list(_x265_planes())
+    options = {"preset": "fast", "x265-params": "qp=30:info=0:log-level=error:frame-threads=1"}
+    expected = encode_frames(frames, "gray10le", options)
+    monkeypatch.setenv(x265_processes.ENV, "1")
+    x265_processes.shutdown()
+    x265_processes.prestart(2)
+    with x265_processes._lock:
+        spare, silent = x265_processes._idle  # the next piece takes the last one
+    for worker in (spare, silent):  # both started and answering
+        assert worker.call(frames[:1], "gray10le", options, timeout=600)[0] == "ok"
+    os.kill(silent.process.pid, signal.SIGSTOP)  # alive but silent, as an x265 spinning on a lock
+    started = time.monotonic()
+    with pytest.warns(RuntimeWarning, match="x265 did not come back for 3 s"):
+        assert x265_processes.encode(frames, "gray10le", options, timeout=600, stall=3.0) == expected
+    assert time.monotonic() - started < 60  # the stall limit, not the piece's allowance
+    assert silent.process.poll() is not None  # killed
+    with x265_processes._lock:
+        assert spare in x265_processes._idle
+
+
 def test_the_x265_worker_reports_each_frame_taken_and_each_packet_flushed():
     from gscodec_shac.codec.grid import x265_processes
     from gscodec_shac.codec.grid.hevc import encode_frames
