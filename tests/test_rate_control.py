@@ -371,3 +371,53 @@ def test_a_psnr_targets_models_are_rescaled_by_the_first_encodes_renders(control
     first = outcome.trials[0]
     near = abs(first["measured_psnr"] - target.value - PSNR_WINDOW / 2) <= RESCALE_WITHIN
     assert first.get("rescaled", 0) == (count if outcome.encodes > 1 and near else 0)
+
+
+# ----------------------------------------------------- probe at the first plan
+def test_a_size_target_codes_the_probe_at_its_first_plan_and_plans_again(small_scene, monkeypatch):
+    """Version 13: the probe coded at the first plan's QPs puts that point on each QP attribute's rate
+    curve (its bytes there, scaled to the whole cloud), the other points stay the probe's; the first
+    trial is the plan made with those curves, and the fitted models come back after the target."""
+    from gscodec_shac.codec import rate_control
+    from gscodec_shac.codec.rate_control import PROBE_QPS
+
+    monkeypatch.setattr(rate_control, "PROBE_MIN", 500)  # a probe smaller than the cloud
+    controller = RateController(small_scene.cloud, views=small_scene.cameras, importance_shares=(), workers=2).fit()
+    n = small_scene.cloud.num_gaussians
+    assert controller._probe_rows.size < n
+    target = make_target(n, bpg=120)
+    plan = controller._first_plan(target)
+    fitted = {name: model.bytes.copy() for name, model in controller.models_.items()}
+    sh_points = {feature: dict(points) for feature, points in controller._sh_points.items()}
+    try:
+        assert controller._probe_at(plan)
+        probe = small_scene.cloud.select(controller._probe_rows)  # coded at the plan's QPs, here too
+        names = ("opacity", "rotation", "scale", "sh_dc")
+        point = controller._rate_point({name: plan.settings[name] for name in (*names, "sh")} | {"positions": 16})
+        sizes = Encoder(point, sh_stage=controller.stage_, fit_stage=False).encode(probe).attribute_sizes()
+        for name in names:
+            model = controller.models_[name]
+            at = np.searchsorted(model.choices, plan.settings[name])
+            assert model.bytes[at] == pytest.approx(sizes[name] * n / probe.num_gaussians, rel=1e-9)
+            for qp in PROBE_QPS:  # the probe's own points stay
+                assert model.bytes[qp] == pytest.approx(fitted[name][qp], rel=1e-9)
+        assert controller._sh_points == sh_points  # the SH features' points are the fit's again
+        replanned = controller._first_plan(target)
+    finally:
+        for name, data in fitted.items():
+            controller.models_[name] = dataclasses.replace(controller.models_[name], bytes=data)
+    outcome = controller.encode(target)
+    assert all(np.array_equal(controller.models_[name].bytes, fitted[name]) for name in fitted)
+    assert outcome.trials[0]["first_plan_bytes"] == pytest.approx(plan.predicted_bytes)
+    assert outcome.trials[0]["predicted_bytes"] == pytest.approx(replanned.predicted_bytes)
+    assert "plan_probe" in outcome.seconds
+    assert (1 - SIZE_TOLERANCE) * target.value <= outcome.stream.total_bytes() <= target.value
+    quality = controller.encode(Target("psnr", 36.0))  # a PSNR target does not
+    assert "plan_probe" not in quality.seconds and "first_plan_bytes" not in quality.trials[0]
+
+
+def test_no_probe_at_the_plan_when_the_probe_is_the_whole_cloud(controller):
+    target = make_target(controller.cloud.num_gaussians, bpg=120)
+    assert controller._probe_rows.size == controller.cloud.num_gaussians
+    assert not controller._probe_at(controller._first_plan(target))
+    assert "plan_probe" not in controller.encode(target).seconds

@@ -82,8 +82,9 @@ TEMPLATE = "shac_auto:template"
 #: target's fill of the first plan and its SH-keeping corrections (:data:`FINE_BAND`); 10 compares a
 #: PSNR target's single steps with the start's bytes as the corrected models predict them now; 11 weighs
 #: the probe's rendered error by how visible its Gaussians are (:meth:`RateController._probe_visibility`);
-#: 12 rescales a PSNR target's models by the renders of its first encode (:meth:`RateController._rescale_models`).
-VERSION = 12
+#: 12 rescales a PSNR target's models by the renders of its first encode (:meth:`RateController._rescale_models`);
+#: 13 codes the probe at a size target's first plan and plans again (:meth:`RateController._probe_at`).
+VERSION = 13
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
 #: QPs at which the probe is encoded; the models interpolate between them (and extrapolate).
@@ -301,6 +302,9 @@ class RateController:
         self._last_order: np.ndarray | None = None  # source rows of the last encode's decoded rows
         self._probe_decoded: tuple[np.ndarray, GaussianCloud] | None = None  # (rows, decoded) at SENSITIVITY_QP
         self._sh_points: dict[int, dict[int, float]] = {}  # SH feature (-1: side information) -> {QP: bytes}
+        self._sh_ranges: np.ndarray | None = None  # the whole cloud's range of each SH feature
+        self._probe_rows: np.ndarray | None = None  # the probe's rows of the cloud
+        self._probe_rates: dict[str, dict[int, float]] = {}  # QP attribute -> {probe QP: bytes, whole cloud}
         #: the rendered MSE of each attribute of the probe as decoded (the sensitivities' numerators)
         self.rendered_mse_: dict[str, float] = {}
         #: the probe's mean importance over the whole cloud's (:meth:`_probe_visibility`)
@@ -335,6 +339,7 @@ class RateController:
                 if rows.size < cloud.num_gaussians:
                     rows = np.union1d(rows, _extreme_rows(cloud, sh_values))
                 sh_values = None
+                self._probe_rows, self._sh_ranges = rows, sh_ranges
                 rates, errors, overhead = self._probe(rows, bar)
                 self.seconds_["probe"] = time.perf_counter() - tic
                 tic = time.perf_counter()
@@ -347,12 +352,23 @@ class RateController:
                 self.seconds_["calibrate"] = time.perf_counter() - tic
             self.models_["positions"] = self._position_model(coded, sensitivity["positions"])
         grid = np.arange(0, 52)
+        self._probe_rates = {name: dict(zip(PROBE_QPS, map(float, rates[name]))) for name in rates}
         for name in rates:
-            rate = self._sh_rates(grid, sh_ranges) if name == "sh" and self._waterfilled else _interpolate_log(PROBE_QPS, rates[name], grid)
             self.models_[name] = AttributeModel(
-                name, grid, rate, sensitivity[name] * _interpolate_log(PROBE_QPS, errors[name], grid))
+                name, grid, self._rate_curve(name, grid), sensitivity[name] * _interpolate_log(PROBE_QPS, errors[name], grid))
         self.overhead_ = overhead
         return self
+
+    def _rate_curve(self, name: str, grid: np.ndarray, extra: float | None = None, qp: int | None = None) -> np.ndarray:
+        """Bytes of QP attribute ``name`` at each QP of ``grid`` from the probe's encodes (the water-filled SH
+        features' from :attr:`_sh_points`, :meth:`_sh_rates`), with ``extra`` bytes at ``qp`` as one more point."""
+        if name == "sh" and self._waterfilled:
+            return self._sh_rates(grid, self._sh_ranges)
+        points = dict(self._probe_rates[name])
+        if extra is not None:
+            points[int(qp)] = extra
+        qps = sorted(points)
+        return _interpolate_log(qps, np.array([points[q] for q in qps]), grid)
 
     def _prune_candidates(self, renderer: Any = None) -> list[tuple[dict[str, float], np.ndarray]]:
         """Rate-point prune settings and the Gaussians kept (a mask) for each opacity threshold that prunes
@@ -795,7 +811,12 @@ class RateController:
         """:meth:`encode` with the models fitted."""
         tic = time.perf_counter()
         self._exact = {}  # bytes measured per attribute and setting
+        self.seconds_.pop("plan_probe", None)  # an earlier target's
         plan: Plan | None = self._first_plan(target)
+        first_plan_bytes = plan.predicted_bytes
+        if target.kind == "bytes" and self._probe_at(plan):  # version 13
+            plan = self._first_plan(target)
+            self.seconds_["plan_probe"] = time.perf_counter() - tic
         expected = plan.predicted_psnr  # the PSNR the controller expects of the plan it encodes
         tried: set[tuple] = set()
         best: tuple[Bitstream, Plan, float | None] | None = None
@@ -837,6 +858,8 @@ class RateController:
                     plan, expected = self._next_for_quality(target, measured_plans, tried) or (None, math.nan)
                 decoded = None
             trials[-1]["seconds"] = time.perf_counter() - started
+            if len(trials) == 1 and "plan_probe" in self.seconds_:
+                trials[0]["first_plan_bytes"] = first_plan_bytes  # predicted before the probe at its QPs
         bar.close()
         self.seconds_["encode"] = time.perf_counter() - tic
         if best is None:
@@ -994,6 +1017,40 @@ class RateController:
             if step.predicted_bytes <= limit:
                 return step
         return None
+
+    def _probe_at(self, plan: Plan) -> bool:
+        """Version 13: encode the probe at ``plan``'s QPs and add what each QP attribute's chunks cost there
+        (scaled to the whole cloud; the water-filled SH features' each at its own QP) to its rate curve;
+        False, changing nothing, when the probe is the whole cloud (its encode would be the first trial).
+
+        The probe codes each attribute at QPs 6, 18, 30 and 42 only; between them the curves are
+        interpolated, and where a rate falls steeply that is far off. On synthetic 1M the first plan of
+        a 100 bits/G target put scale at QP 34, where the curve between QPs 30 and 42 gave 0.65 of the
+        bytes the whole cloud's scale then cost, and the probe itself coded there 1.03 of them; the
+        file came out 2% over the target and took a second encode (docs/rate_control.md, "Controller
+        version 13"). Used by size targets, whose models :meth:`encode` restores afterwards."""
+        rows = self._probe_rows
+        if rows is None or rows.size >= self.cloud.num_gaussians:
+            return False
+        probe = self.cloud.select(rows)
+        scale = self.cloud.num_gaussians / probe.num_gaussians
+        names = list(self._probe_rates)
+        point = self._rate_point({name: plan.settings[name] for name in names} | {"positions": 16})
+        stream = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers).encode(probe)
+        sizes = stream.attribute_sizes()
+        fitted_sh_points = {feature: dict(points) for feature, points in self._sh_points.items()}
+        if "sh" in names and self._waterfilled:
+            self._record_sh_chunks(stream, scale)
+        try:
+            for name in names:
+                coded = scale * sizes.get(name, 0) + (sizes.get("sh_state", 0) if name == "sh" else 0)
+                model = self.models_[name]
+                self.models_[name] = AttributeModel(name, model.choices,
+                                                    self._rate_curve(name, model.choices, coded, plan.settings[name]),
+                                                    model.mse)
+        finally:
+            self._sh_points = fitted_sh_points
+        return True
 
     def _rescale_models(self, plan: Plan, decoded: GaussianCloud) -> int:
         """Rescale each QP attribute's rendered-error model by what the first encode of a PSNR target
