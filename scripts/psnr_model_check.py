@@ -50,15 +50,11 @@ def main() -> None:
     measured = controller.measured_psnr(stream)
     decoded = rc._decoded(stream, None)
     coded = rc._model_sizes(stream)
-    kept = controller.prune_[plan.settings.get("prune", 0)][1]
     rows = []
     for name, model in controller.models_.items():
         predicted = float(model.mse[np.searchsorted(model.choices, plan.settings[name])])
         row = {"attribute": name, "setting": plan.settings[name], "model_mse": predicted}
-        if name == "positions":
-            model_bytes = controller._position_bytes(plan.settings[name], plan.settings.get("prune", 0))
-        else:
-            model_bytes = kept * controller._dc_factor(plan.settings, name) * controller._bytes(name, plan.settings[name])
+        model_bytes = controller._attribute_bytes(plan.settings, name)
         row.update(model_bytes=model_bytes, bytes=coded.get(name, 0), bytes_ratio=model_bytes / max(coded.get(name, 0), 1))
         if name != "positions":  # positions: the model is the quantisation step's, not a render
             rendered = controller._rendered_with_decoded(name, encoder.order_, decoded)

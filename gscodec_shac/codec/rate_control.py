@@ -360,8 +360,9 @@ class RateController:
         return self
 
     def _rate_curve(self, name: str, grid: np.ndarray, extra: float | None = None, qp: int | None = None) -> np.ndarray:
-        """Bytes of QP attribute ``name`` at each QP of ``grid`` from the probe's encodes (the water-filled SH
-        features' from :attr:`_sh_points`, :meth:`_sh_rates`), with ``extra`` bytes at ``qp`` as one more point."""
+        """Bytes of QP attribute ``name`` at each QP of ``grid`` from the probe's encodes, with ``extra`` bytes at
+        ``qp`` as one more point; the water-filled SH features' from :attr:`_sh_points` (:meth:`_sh_rates`),
+        where a caller records a further encode's points per feature instead (``extra`` is not used)."""
         if name == "sh" and self._waterfilled:
             return self._sh_rates(grid, self._sh_ranges)
         points = dict(self._probe_rates[name])
@@ -476,7 +477,7 @@ class RateController:
                 point = self._rate_point({a: qp for a in rates} | {"positions": 16}).with_overrides(dc_only_energy=value)
                 sizes = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers).encode(probe) \
                     .attribute_sizes()
-                out[(value, qp)] = scale * sizes.get("sh", 0) + sizes.get("sh_state", 0)
+                out[(value, qp)] = _scaled_probe_bytes(sizes, "sh", scale)
         return flags, out
 
     def _fit_dc_only(self, rates: dict[str, np.ndarray], flags: dict[float, np.ndarray],
@@ -525,7 +526,7 @@ class RateController:
             source = probe.select(encoder.order_)
             sizes = stream.attribute_sizes()
             for a in names:
-                rates[a][i] = scale * sizes.get(a, 0) + (sizes.get("sh_state", 0) if a == "sh" else 0)
+                rates[a][i] = _scaled_probe_bytes(sizes, a, scale)
                 errors[a][i] = _attribute_mse(a, source, decoded, point.color == "ycbcr")
             if qp == SENSITIVITY_QP:
                 self._probe_decoded = (rows[encoder.order_], decoded)
@@ -722,11 +723,18 @@ class RateController:
         _, kept, prune_mse = self.prune_[prune]
         dc = self.dc_only_[settings.get("dc_only", 0)]
         size = self._overhead_bytes() + self._position_bytes(settings["positions"], prune) + kept * dc.flag_bytes + sum(
-            kept * self._dc_factor(settings, name) * self._bytes(name, settings[name])
-            for name in self.models_ if name != "positions")
+            self._attribute_bytes(settings, name) for name in self.models_ if name != "positions")
         mse = prune_mse + dc.zeroing(prune) + sum(m.mse[np.searchsorted(m.choices, settings[n])]
                                                   for n, m in self.models_.items())
         return Plan(settings, size, mse, self._rate_point(settings))
+
+    def _attribute_bytes(self, settings: dict[str, int], name: str) -> float:
+        """The bytes :meth:`_predict` counts for attribute ``name`` under ``settings``: after the pruning's
+        share kept and the DC-only bar (the positions: :meth:`_position_bytes`)."""
+        prune = settings.get("prune", 0)
+        if name == "positions":
+            return self._position_bytes(settings["positions"], prune)
+        return self.prune_[prune][1] * self._dc_factor(settings, name) * self._bytes(name, settings[name])
 
     def _position_bytes(self, bits: int, prune: int) -> float:
         """Set-coded positions at ``bits`` after pruning: measured, else the unpruned size scaled by the
@@ -858,9 +866,9 @@ class RateController:
                     plan, expected = self._next_for_quality(target, measured_plans, tried) or (None, math.nan)
                 decoded = None
             trials[-1]["seconds"] = time.perf_counter() - started
-            if len(trials) == 1 and "plan_probe" in self.seconds_:
-                trials[0]["first_plan_bytes"] = first_plan_bytes  # predicted before the probe at its QPs
         bar.close()
+        if trials and "plan_probe" in self.seconds_:
+            trials[0]["first_plan_bytes"] = first_plan_bytes  # predicted before the probe at its QPs
         self.seconds_["encode"] = time.perf_counter() - tic
         if best is None:
             raise TargetUnreachableError(f"no encode met {target.describe()} in {len(trials)} tries")
@@ -1043,7 +1051,7 @@ class RateController:
             self._record_sh_chunks(stream, scale)
         try:
             for name in names:
-                coded = scale * sizes.get(name, 0) + (sizes.get("sh_state", 0) if name == "sh" else 0)
+                coded = _scaled_probe_bytes(sizes, name, scale)
                 model = self.models_[name]
                 self.models_[name] = AttributeModel(name, model.choices,
                                                     self._rate_curve(name, model.choices, coded, plan.settings[name]),
@@ -1086,6 +1094,12 @@ class RateController:
 
 
 # ------------------------------------------------------------------ helpers
+def _scaled_probe_bytes(sizes: dict[str, int], name: str, scale: float) -> float:
+    """A probe encode's bytes of attribute ``name`` (``sizes``: its attribute sizes) scaled to the whole
+    cloud by ``scale``; the SH stage's side information counts once with the SH features."""
+    return scale * sizes.get(name, 0) + (sizes.get("sh_state", 0) if name == "sh" else 0)
+
+
 def _model_sizes(stream: Bitstream) -> dict[str, int]:
     """Bytes per modelled attribute; the SH stage's side information counts with the SH features
     (water-filling sets how many components it stores)."""
