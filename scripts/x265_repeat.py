@@ -16,6 +16,11 @@ Two sub-commands over directories written with ``GSCODEC_X265_DUMP=DIR``
     options) to x265 N times through the worker processes, optionally with x265 parameters
     appended, and count the distinct outputs per piece; prints CPU time per setting.
 
+``options DIR --extra :me=dia --extra :me=hex ...``  code every kept piece once with its recorded options
+    and once per ``--extra`` (appended; ``:me=star`` restores the preset's search where the recorded
+    options set another), decode it, and print per setting the bytes, the PSNR of the decoded samples
+    against x265's input (the sample range of its bit depth) and the CPU seconds, in total and per piece.
+
 Example (a stress loop under load):
     for i in 1 2 3; do GSCODEC_X265_DUMP=out/d$i gscodec-shac encode scene.ply out/r$i.gsc \\
         -r shac_ladder:rp4 --sh pca --er 0.97 -q; done
@@ -104,6 +109,42 @@ def repeat(folder: str, times: int, extra: str, sizes: tuple[int, int] = (0, 2**
     return changed
 
 
+def options(folder: str, extras: list[str]) -> None:
+    """Per x265 parameter set: total bytes, PSNR of the decoded samples, CPU seconds (docs/benchmarks.md,
+    "Diamond motion search for the frames layout")."""
+    import numpy as np
+
+    from gscodec_shac.codec.grid.hevc import _decoded_frames, _planes_from_frame
+
+    pieces = {}
+    for row in _records(folder):
+        pieces.setdefault((row["input"], _settings(row)), row)
+    for extra in ["", *extras]:
+        total_bytes, total_cpu, squared, samples, per_piece = 0, 0.0, 0.0, 0, []
+        for (source, _), row in sorted(pieces.items(), key=lambda kv: -kv[1]["bytes"]):
+            frames = x265_dump.load_frames(os.path.join(folder, f"frames-{source[:16]}.npz"))
+            settings = dict(row["options"], **{"x265-params": row["options"]["x265-params"] + extra})
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            stream = x265_processes.encode(frames, row["pix_fmt"], settings)
+            x265_processes.shutdown()  # the worker's CPU time is counted once it has ended
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+            chroma = 3 if frames[0].ndim == 3 else 0
+            height, width = frames[0].shape[-2:]
+            decoded = [_planes_from_frame(f, 0, height, width, chroma).astype(np.float64)
+                       for f in _decoded_frames(stream, 0)]
+            error = sum(float(((d - f.reshape(d.shape)) ** 2).sum()) for d, f in zip(decoded, frames))
+            count = sum(f.size for f in frames)
+            peak = float((1 << (10 if "10" in row["pix_fmt"] else 12 if "12" in row["pix_fmt"] else 8)) - 1)
+            psnr = 10 * np.log10(peak**2 / max(error / count, 1e-12))
+            per_piece.append(f"{len(frames)}x {len(stream)} B {psnr:.2f} dB {cpu:.2f} s")
+            total_bytes, total_cpu, squared, samples = total_bytes + len(stream), total_cpu + cpu, squared + error, samples + count
+        psnr = 10 * np.log10(1023.0**2 / max(squared / samples, 1e-12))
+        print(f"{extra or '(recorded)':32s} {total_bytes:>11,} B  {psnr:.3f} dB (10-bit peak)  {total_cpu:6.2f} CPU s | "
+              + "; ".join(per_piece), flush=True)
+    print(f"pieces {len(pieces)}; load {os.getloadavg()[0]:.2f}")
+
+
 def shuffle(folder: str, rounds: int, seed: int = 0, extra: str = "") -> int:
     """Code every kept piece ``rounds`` times in a new random order each round, two at once through
     the workers (as the encode scheduler does), so each worker codes them after a different history;
@@ -159,8 +200,13 @@ def main() -> None:
     mix_parser.add_argument("--rounds", type=int, default=5)
     mix_parser.add_argument("--seed", type=int, default=0)
     mix_parser.add_argument("--extra", default="", help="x265 parameters appended, e.g. :wpp=0")
+    opt_parser = commands.add_parser("options")
+    opt_parser.add_argument("folder")
+    opt_parser.add_argument("--extra", action="append", default=[], help="x265 parameters appended (repeatable)")
     args = parser.parse_args()
-    if args.command == "compare":
+    if args.command == "options":
+        options(args.folder, args.extra)
+    elif args.command == "compare":
         compare(args.folders)
     elif args.command == "shuffle":
         shuffle(args.folder, args.rounds, args.seed, args.extra)
