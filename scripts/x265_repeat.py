@@ -37,6 +37,7 @@ import json
 import os
 import resource
 import time
+from typing import Any, Callable
 
 from gscodec_shac.codec.grid import x265_dump, x265_processes
 
@@ -51,6 +52,16 @@ def _records(folder: str) -> list[dict]:
 
 def _settings(row: dict) -> str:
     return json.dumps([row["pix_fmt"], row["options"]], sort_keys=True)
+
+
+def _workers_cpu(work: Callable[[], Any]) -> tuple[Any, float]:
+    """``work()``'s result and the CPU seconds of the x265 worker processes it used (they are
+    shut down after it: a child's CPU time is counted once it has ended)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    result = work()
+    x265_processes.shutdown()
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return result, after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
 
 
 def compare(folders: list[str]) -> int:
@@ -93,12 +104,10 @@ def repeat(folder: str, times: int, extra: str, sizes: tuple[int, int] = (0, 2**
         options = dict(row["options"])
         options["x265-params"] += extra
         seen: collections.Counter = collections.Counter()
-        before, wall = resource.getrusage(resource.RUSAGE_CHILDREN), time.monotonic()
-        for _ in range(times):
-            seen[x265_processes.encode(frames, row["pix_fmt"], options)] += 1
-        x265_processes.shutdown()  # the workers' CPU time is counted once they have ended
-        after = resource.getrusage(resource.RUSAGE_CHILDREN)
-        cpu = (after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime) / times
+        wall = time.monotonic()
+        _, cpu = _workers_cpu(lambda: seen.update(x265_processes.encode(frames, row["pix_fmt"], options)
+                                                  for _ in range(times)))
+        cpu /= times
         sizes = ", ".join(f"{len(s)} B x{n}" for s, n in seen.most_common())
         changed += len(seen) > 1
         total_bytes, total_cpu = total_bytes + len(seen.most_common(1)[0][0]), total_cpu + cpu
@@ -114,8 +123,9 @@ def options(folder: str, extras: list[str]) -> None:
     "Diamond motion search for the frames layout")."""
     import numpy as np
 
-    from gscodec_shac.codec.grid.hevc import _decoded_frames, _planes_from_frame
+    from gscodec_shac.codec.grid.hevc import _GRAY_FMT, _YUV444_FMT, _decoded_frames, _planes_from_frame
 
+    depths = {fmt: depth for table in (_GRAY_FMT, _YUV444_FMT) for depth, fmt in table.items()}
     pieces = {}
     for row in _records(folder):
         pieces.setdefault((row["input"], _settings(row)), row)
@@ -124,18 +134,14 @@ def options(folder: str, extras: list[str]) -> None:
         for (source, _), row in sorted(pieces.items(), key=lambda kv: -kv[1]["bytes"]):
             frames = x265_dump.load_frames(os.path.join(folder, f"frames-{source[:16]}.npz"))
             settings = dict(row["options"], **{"x265-params": row["options"]["x265-params"] + extra})
-            before = resource.getrusage(resource.RUSAGE_CHILDREN)
-            stream = x265_processes.encode(frames, row["pix_fmt"], settings)
-            x265_processes.shutdown()  # the worker's CPU time is counted once it has ended
-            after = resource.getrusage(resource.RUSAGE_CHILDREN)
-            cpu = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+            stream, cpu = _workers_cpu(lambda: x265_processes.encode(frames, row["pix_fmt"], settings))
             chroma = 3 if frames[0].ndim == 3 else 0
             height, width = frames[0].shape[-2:]
             decoded = [_planes_from_frame(f, 0, height, width, chroma).astype(np.float64)
                        for f in _decoded_frames(stream, 0)]
             error = sum(float(((d - f.reshape(d.shape)) ** 2).sum()) for d, f in zip(decoded, frames))
             count = sum(f.size for f in frames)
-            peak = float((1 << (10 if "10" in row["pix_fmt"] else 12 if "12" in row["pix_fmt"] else 8)) - 1)
+            peak = float((1 << depths[row["pix_fmt"]]) - 1)
             psnr = 10 * np.log10(peak**2 / max(error / count, 1e-12))
             per_piece.append(f"{len(frames)}x {len(stream)} B {psnr:.2f} dB {cpu:.2f} s")
             total_bytes, total_cpu, squared, samples = total_bytes + len(stream), total_cpu + cpu, squared + error, samples + count

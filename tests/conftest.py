@@ -2,14 +2,24 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 #: Real scenes: $GSCODEC_SHARED_SCENES, else ../shared/data/scenes beside the checkout.
 SHARED_SCENES = Path(os.environ.get("GSCODEC_SHARED_SCENES", REPO_ROOT.parent / "shared" / "data" / "scenes"))
+
+
+def load_script(name: str) -> ModuleType:
+    """The module of ``scripts/<name>.py`` (the scripts are not a package)."""
+    spec = importlib.util.spec_from_file_location(name, REPO_ROOT / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 #: Tests `make test-fast` leaves out: measured-slow node ids and modules (scripts/slow_tests.py).

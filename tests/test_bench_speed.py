@@ -1,13 +1,10 @@
 """scripts/bench_speed.py: the fixed encode of the settings a target run chose codes the same chunks."""
 
-import sys
-
 from gscodec_shac.codec import Encoder, load_rate_point
 from gscodec_shac.codec.rate_control import RateController, make_target
-from tests.conftest import REPO_ROOT
+from tests.conftest import load_script
 
-sys.path.insert(0, str(REPO_ROOT / "scripts"))
-import bench_speed  # noqa: E402
+bench_speed = load_script("bench_speed")
 
 
 def test_the_chosen_settings_as_a_rate_point_code_the_target_files_chunks(small_scene, tmp_path):

@@ -2,23 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import re
-from pathlib import Path
 
 import numpy as np
 
 from gscodec_shac.codec.grid import get_codec
-
-REPO = Path(__file__).resolve().parents[1]
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location("x265_repeat", REPO / "scripts" / "x265_repeat.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from tests.conftest import load_script
 
 
 def test_options_recodes_the_recorded_streams_and_reports_bytes_and_psnr(tmp_path, monkeypatch, capsys):
@@ -33,7 +23,7 @@ def test_options_recodes_the_recorded_streams_and_reports_bytes_and_psnr(tmp_pat
     recorded = [json.loads(line) for p in tmp_path.glob("x265-*.jsonl") for line in p.read_text().splitlines()]
     assert len(recorded) == 1
 
-    _script().options(str(tmp_path), [":qp=40"])
+    load_script("x265_repeat").options(str(tmp_path), [":qp=40"])
     rows = [line for line in capsys.readouterr().out.splitlines() if " B " in line]
     assert [row.split()[0] for row in rows] == ["(recorded)", ":qp=40"]
     sizes = [int(row.split()[1].replace(",", "")) for row in rows]
