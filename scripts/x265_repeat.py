@@ -129,6 +129,8 @@ def options(folder: str, extras: list[str]) -> None:
     pieces = {}
     for row in _records(folder):
         pieces.setdefault((row["input"], _settings(row)), row)
+    if not pieces:
+        raise SystemExit(f"{folder}: no x265 records (write them with GSCODEC_X265_DUMP={folder} during an encode)")
     for extra in ["", *extras]:
         total_bytes, total_cpu, squared, samples, per_piece = 0, 0.0, 0.0, 0, []
         for (source, _), row in sorted(pieces.items(), key=lambda kv: -kv[1]["bytes"]):

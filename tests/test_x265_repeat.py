@@ -6,6 +6,7 @@ import json
 import re
 
 import numpy as np
+import pytest
 
 from gscodec_shac.codec.grid import get_codec
 from tests.conftest import load_script
@@ -30,3 +31,8 @@ def test_options_recodes_the_recorded_streams_and_reports_bytes_and_psnr(tmp_pat
     psnrs = [float(re.search(r"([\d.]+) dB \(10-bit peak\)", row).group(1)) for row in rows]
     assert sizes[0] == recorded[0]["bytes"]  # the recorded settings code the recorded bytes again
     assert sizes[1] < sizes[0] and psnrs[1] < psnrs[0] < 99  # a coarser QP appended: fewer bytes, lower PSNR
+
+
+def test_options_on_a_folder_without_records_is_one_clear_error(tmp_path):
+    with pytest.raises(SystemExit, match="no x265 records"):
+        load_script("x265_repeat").options(str(tmp_path), [":me=star"])
