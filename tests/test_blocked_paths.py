@@ -4,15 +4,18 @@ Each blocked or streamed path is run with tiny blocks (1 row, a few rows, a bloc
 that does not divide N) and compared bit for bit with the whole array computed at once.
 """
 
+from pathlib import Path
+
 import numpy as np
 import plyfile
 import pytest
 
-from gscodec_shac.codec import Encoder
+from gscodec_shac.codec import Decoder, Encoder
+from gscodec_shac.codec import decoder as decoder_module
 from gscodec_shac.codec import quantize as qz
 from gscodec_shac.codec.attributes import ATTRIBUTES
 from gscodec_shac.codec.layout import placement_view, planes
-from gscodec_shac.codec.rate_points import parse_rate_points
+from gscodec_shac.codec.rate_points import builtin_rate_point_files, load_rate_point_file, parse_rate_points
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.io.ply import read_ply, write_ply
@@ -21,6 +24,7 @@ from gscodec_shac.shac.base import check_ac_matrix
 from gscodec_shac.shac.pca import ShacPCA
 
 BLOCKS = (1, 3, 7, 1000)
+STREAMS = Path(__file__).parent / "fixtures" / "streams"
 
 
 def _cloud(n: int = 53, degree: int = 3, seed: int = 0) -> GaussianCloud:
@@ -170,3 +174,40 @@ def test_the_placement_view_shares_all_rows_and_copies_a_subset():
     assert whole.means is cloud.means and whole.sh_degree == 0 and not whole.extra
     part = placement_view(cloud, np.array([1, 4]))
     assert np.array_equal(part.quats, cloud.quats[[1, 4]]) and part.num_gaussians == 2
+
+
+# ------------------------------------------------------------------- decoder
+@pytest.fixture(scope="module")
+def pca_streams() -> list[bytes]:
+    """SHAC-PCA streams: 3,000 Gaussians (blocks of thousands of rows), DC in the PCA, DC-only Gaussians."""
+    point = load_rate_point_file(builtin_rate_point_files()["shac_ladder"])["rp6"]
+    cloud = _cloud(n=3000, seed=4)
+    streams = [Encoder(point, sh_stage="pca", sh_params={"energy_retention": 0.97}).encode(cloud).to_bytes()]
+    return streams + [(STREAMS / f"{name}.gsc").read_bytes() for name in ("v1.0/table3_rp3_pca_dc",
+                                                                          "v2.3/ladder_rp4_pca_dc_only")]
+
+
+@pytest.mark.parametrize("block", [1000, 1024, 2999, 1 << 16])
+def test_sh_features_inverted_in_row_blocks_decode_to_the_whole_inverse(monkeypatch, pca_streams, block):
+    """SHAC-PCA's features dequantised and inverted block by block (as they are decoded) are the
+    whole-matrix inverse bit for bit, whether the blocks divide N or not (a last block of 1 row)."""
+    calls = []
+    inverse = decoder_module._FeatureCodes.inverse
+    monkeypatch.setattr(decoder_module._FeatureCodes, "inverse", lambda self, *a: calls.append(1) or inverse(self, *a))
+    for data in pca_streams:
+        monkeypatch.setattr(ShacPCA, "inverts_row_blocks", False)
+        whole = Decoder(workers=2).decode(data)
+        monkeypatch.setattr(ShacPCA, "inverts_row_blocks", True)
+        monkeypatch.setattr(decoder_module._FeatureCodes, "block_rows", block)
+        assert Decoder(workers=2).decode(data).equals(whole)
+    assert len(calls) == len(pca_streams)
+
+
+@pytest.mark.parametrize("name", ["v1.0/custom_lossless_drop", "v2.3/custom_lossless_drop_dc_only"])
+def test_tail_padded_planes_read_as_a_slice_decode_as_gathered(monkeypatch, name):
+    """On a tail-padded grid the occupied cells are read as a view of each plane; the same values as
+    gathering them by index (a full grid, and a DC-only stream's partly filled SH grid)."""
+    data = (STREAMS / f"{name}.gsc").read_bytes()
+    sliced = Decoder().decode(data)
+    monkeypatch.setattr(decoder_module, "_cell_selector", lambda padding, n, cells: cells)
+    assert Decoder().decode(data).equals(sliced)

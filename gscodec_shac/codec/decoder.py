@@ -40,6 +40,7 @@ from gscodec_shac.errors import BitstreamError, CodecUnavailableError, GscodecEr
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.limits import MEMORY_ENV, default_workers, format_bytes, memory_budget
 from gscodec_shac.progress import optional_bar
+from gscodec_shac.shac.base import ShStage
 
 
 class Decoder:
@@ -85,13 +86,17 @@ class Decoder:
         # The occupied cells, computed once, when the first decoded picture needs them: a header
         # declaring a huge grid over small pictures fails the codec's picture-size check first.
         cells = _Once(lambda: occupied_cells(view.padding, shape, n, mask))
-        grids = {name: (shape, n, cells) for name in view.attributes}
+        grids = {name: (shape, n, cells, _cell_selector(view.padding, n, cells)) for name in view.attributes}
         if dc_only is not None:  # the SH features of the other Gaussians are on a grid of their own
             sh = view.sh
             coded = n - sh.dc_only  # type: ignore[union-attr]
-            grids["sh"] = (sh.grid, coded, _Once(lambda: occupied_cells(sh.grid_padding, sh.grid, coded)))
+            sh_cells = _Once(lambda: occupied_cells(sh.grid_padding, sh.grid, coded))
+            grids["sh"] = (sh.grid, coded, sh_cells, _cell_selector(sh.grid_padding, coded, sh_cells))
         ycbcr = view.color == "ycbcr"
-        streamed = {name: _Dequantized(entry, *grids[name][1:], ycbcr) for name, entry in view.attributes.items()
+        by_blocks = stage is not None and stage.inverts_row_blocks and not view.sh.lossless  # type: ignore[union-attr]
+        streamed = {name: (_FeatureCodes if name == "sh" and by_blocks else _Dequantized)(
+                        entry, grids[name][1], grids[name][3], ycbcr)
+                    for name, entry in view.attributes.items()
                     if entry.coding == "planes" and entry.quantizer is not None
                     and all(p.part == "all" for p in view.chunks if p.attribute == name)}
         tasks = [_ChunkTask(plan, stream.chunk(plan.name), codecs[plan.codec], grids[plan.attribute][0],
@@ -110,7 +115,9 @@ class Decoder:
                 future.result()
             planes = [futures[i].result() for i in range(len(tasks))]
             out = {name: future.result() for name, future in set_futures.items()}
-        values = {name: target.values() for name, target in streamed.items() if target.done is None}
+        features = streamed.get("sh") if isinstance(streamed.get("sh"), _FeatureCodes) else None
+        values = {name: target.values() for name, target in streamed.items()
+                  if target.done is None and target is not features}
         out = {**out, **{name: target.done for name, target in streamed.items() if target.done is not None}}
         values.update({
             name: _assemble(entry, [(t, p) for t, p in zip(tasks, planes) if t.plan.attribute == name],
@@ -123,12 +130,12 @@ class Decoder:
         if view.sh is None:
             sh_rest = np.zeros((n, sh_index.num_rest_coeffs(degree), 3), dtype=np.float32)
         else:
-            features = values.pop("sh", np.zeros((grids["sh"][1] if "sh" in grids else n, 0)))
-            if view.sh.ycbcr:
-                features = qz.triplets_from_ycbcr(features)
-            if not view.sh.lossless:
-                features = features.astype(np.float32, copy=False)
-            dc_and_ac = np.asarray(stage.inverse_transform(features))
+            if features is not None:  # dequantised and inverted block by block
+                dc_and_ac = features.inverse(stage, view.sh.ycbcr, self.workers)
+            else:
+                features = values.pop("sh", np.zeros((grids["sh"][1] if "sh" in grids else n, 0)))
+                dc_and_ac = np.asarray(stage.inverse_transform(_stage_input(features, view.sh.ycbcr,
+                                                                            view.sh.lossless)))
             features = None  # freed before the cloud's float32 copies below (peak memory)
             if view.sh.uses_dc:
                 sh_dc, dc_and_ac = dc_and_ac[:, :3], dc_and_ac[:, 3:]
@@ -155,6 +162,19 @@ class _Once:
             return self._value
 
 
+def _cell_selector(padding: str, n: int, cells: _Once) -> Callable[[], slice | np.ndarray]:
+    """The occupied cells as a slice where they are the first ``n`` (``tail`` padding: a view of a
+    plane's codes, no gather), else the cells' indices."""
+    return (lambda: slice(0, n)) if padding == "tail" else cells
+
+
+def _stage_input(features: np.ndarray, ycbcr: bool, lossless: bool) -> np.ndarray:
+    """Dequantised SH features as the stage inverts them: RGB triplets, float32 unless lossless."""
+    if ycbcr:
+        features = qz.triplets_from_ycbcr(features)
+    return features if lossless else features.astype(np.float32, copy=False)
+
+
 class _Dequantized:
     """An attribute's (C, N) float32 values, filled channel by channel as its pictures decode.
 
@@ -163,7 +183,7 @@ class _Dequantized:
     while the codec goes on with the next one.
     """
 
-    def __init__(self, entry: AttributeEntry, n: int, cells: _Once, ycbcr: bool) -> None:
+    def __init__(self, entry: AttributeEntry, n: int, cells: Callable[[], slice | np.ndarray], ycbcr: bool) -> None:
         self.tables = entry.quantizer.tables()  # type: ignore[union-attr]
         self.cells = cells
         self.out = np.empty((entry.channels, n), dtype=np.float32)
@@ -174,7 +194,7 @@ class _Dequantized:
     def put(self, channel: int, planes: np.ndarray) -> None:
         cells = self.cells()
         for k, plane in enumerate(planes):
-            np.take(self.tables[channel + k], np.take(plane.reshape(-1), cells), mode="clip", out=self.out[channel + k])
+            np.take(self.tables[channel + k], _codes(plane, cells), mode="clip", out=self.out[channel + k])
         with self._lock:
             self.missing -= len(planes)
             last = self.missing == 0
@@ -184,6 +204,62 @@ class _Dequantized:
     def values(self) -> np.ndarray:
         """(N, C) values (a column-major view)."""
         return self.out.T
+
+
+class _FeatureCodes:
+    """The SH features' codes (C, N) uint16, kept as their pictures decode; :meth:`inverse` then
+    dequantises them and inverts the stage (one with ``inverts_row_blocks``) block by block, so the
+    (N, C) float features are never held whole and each block's values are still in cache."""
+
+    #: Rows per block (of 8k, 32k and 64k the fastest on a 1M decode; at least some thousand rows,
+    #: so that the BLAS never takes its small-matrix path for a block).
+    block_rows = 1 << 16
+    done = None
+
+    def __init__(self, entry: AttributeEntry, n: int, cells: Callable[[], slice | np.ndarray], ycbcr: bool) -> None:
+        self.tables = entry.quantizer.tables()  # type: ignore[union-attr]
+        self.cells = cells
+        self.codes = np.empty((entry.channels, n), dtype=np.uint16)
+
+    def put(self, channel: int, planes: np.ndarray) -> None:
+        cells = self.cells()
+        for k, plane in enumerate(planes):
+            self.codes[channel + k] = _codes(plane, cells)
+
+    def inverse(self, stage: ShStage, ycbcr: bool, workers: int) -> np.ndarray:
+        """(N, K_in) float32: ``stage.inverse_transform`` of the dequantised features, in row blocks
+        (``workers`` threads, one BLAS thread each).
+
+        Every block is ``block_rows`` tall (the last one starts early and keeps only its new rows;
+        fewer rows than that: one block, the whole matrix), so the BLAS runs the same kernel for
+        every row and the result is the whole-matrix product's bit for bit.
+        """
+        from threadpoolctl import threadpool_limits
+
+        channels, n = self.codes.shape
+        width = stage.inverse_transform(np.zeros((0, channels), np.float32)).shape[1]
+        out = np.empty((n, width), np.float32)
+        rows = min(self.block_rows, n)
+
+        def invert(start: int) -> None:
+            first = min(start, n - rows)
+            block = np.empty((channels, rows), dtype=np.float32)
+            for c in range(channels):
+                np.take(self.tables[c], self.codes[c, first : first + rows], mode="clip", out=block[c])
+            into = out[start : start + rows] if first == start else np.empty((rows, width), np.float32)
+            stage.inverse_transform_into(_stage_input(block.T, ycbcr, lossless=False), into)
+            if first != start:
+                out[start:] = into[start - first :]
+
+        with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(workers) as pool:
+            list(pool.map(invert, range(0, n, rows or 1)))
+        return out
+
+
+def _codes(plane: np.ndarray, cells: slice | np.ndarray) -> np.ndarray:
+    """The occupied cells' codes of a decoded plane (a view for a slice)."""
+    flat = plane.reshape(-1)
+    return flat[cells] if isinstance(cells, slice) else np.take(flat, cells)
 
 
 @dataclass(frozen=True)

@@ -180,6 +180,10 @@ class ShStage(ABC):
     #: the :class:`~gscodec_shac.codec.encoder.Encoder` then passes a
     #: :class:`~gscodec_shac.row_blocks.GatheredRows` instead of a grid-order copy (memory).
     reads_row_blocks: ClassVar[bool] = False
+    #: True when :meth:`inverse_transform` of a block of rows is that block of the whole inverse,
+    #: bit for bit: the :class:`~gscodec_shac.codec.decoder.Decoder` then inverts the features
+    #: block by block as it dequantises them (no whole feature matrix is held).
+    inverts_row_blocks: ClassVar[bool] = False
 
     def set_positions(self, positions: np.ndarray) -> None:
         """The (N, 3) positions of the rows the next :meth:`fit` sees (stages with ``uses_positions``)."""
@@ -196,6 +200,10 @@ class ShStage(ABC):
     @abstractmethod
     def inverse_transform(self, features: np.ndarray) -> np.ndarray:
         """(N, D) features -> (N, K') reconstruction."""
+
+    def inverse_transform_into(self, features: np.ndarray, out: np.ndarray) -> None:
+        """:meth:`inverse_transform` written into ``out`` ((N, K'), of the result's dtype)."""
+        out[...] = self.inverse_transform(features)
 
     @abstractmethod
     def state(self) -> StageState:

@@ -84,6 +84,7 @@ class ShacPCA(ShStage):
     feature_kind = "components"
     rate_attribute = "sh_features"
     reads_row_blocks = True
+    inverts_row_blocks = True
     params = (
         StageParam("energy_retention", "float", DEFAULT_ENERGY_RETENTION,
                    "energy retention ER(M) (eq. 26) the kept components reach", flag="er", lo=0.0, hi=1.0, open_lo=True),
@@ -221,13 +222,20 @@ class ShacPCA(ShStage):
         """Eq. 29 (consistent form): A~ = F P^T D_sigma + 1 mu^T, shape (N, K_in)."""
         self._check_fitted()
         features = check_ac_matrix(features, self.n_components_)
-        dtype = np.result_type(features.dtype, np.float32)
-        back = (self.components_ * self.scale_[:, None]).astype(dtype)  # (K_in, M)
+        out = np.empty((features.shape[0], self._n_in), dtype=np.result_type(features.dtype, np.float32))
+        self.inverse_transform_into(features, out)
+        return out
+
+    def inverse_transform_into(self, features: np.ndarray, out: np.ndarray) -> None:
+        """Eq. 29 into ``out`` (N, K_in): one BLAS product per call, each output row from its own
+        feature row only (so row blocks give the rows of the whole product)."""
+        self._check_fitted()
+        features = check_ac_matrix(features, self.n_components_)
+        back = (self.components_ * self.scale_[:, None]).astype(out.dtype)  # (K_in, M)
         # Row-major (N, K_in) out of the BLAS directly (channel-major features go in as a
         # transposed operand, no copy): the cloud's sh_rest needs no transposing copy after it.
-        out = features @ back.T
-        out += self.mean_.astype(dtype)
-        return out
+        np.matmul(features, back.T, out=out)
+        out += self.mean_.astype(out.dtype)
 
     def feature_weights(self) -> np.ndarray:
         """Unit error on component j moves the input columns by ``P_kj sigma_k`` (eq. 29): weight sum_k (P_kj sigma_k)^2."""
