@@ -75,7 +75,17 @@ class Decoder:
             )
 
     def _decode(self, stream: Bitstream, view: StreamHeader) -> GaussianCloud:
+        with ThreadPoolExecutor(self.workers) as pool:
+            return self._decode_in(pool, stream, view)
+
+    def _decode_in(self, pool: ThreadPoolExecutor, stream: Bitstream, view: StreamHeader) -> GaussianCloud:
         n, degree, shape = view.num_gaussians, view.sh_degree, view.grid_shape
+        ycbcr = view.color == "ycbcr"
+        # Set-coded positions (LZMA and numpy, then their inverse transform: one thread) start first: beside the
+        # grid codecs' imports (PyAV's), then beside the largest chunk, whose pictures FFmpeg decodes on several
+        # threads (queued last, they were the only work left at the end of a 1M decode: 0.15 s of one core).
+        set_futures = {name: pool.submit(_position_set, stream.chunk(e.chunks[0]), e, n, ycbcr)
+                       for name, e in view.attributes.items() if e.coding == "set"}
         codecs = {i: get_codec(view.codecs[i].name, **view.codecs[i].options) for i in {p.codec for p in view.chunks}}
         mask = None
         if view.padding == "mask":
@@ -92,7 +102,6 @@ class Decoder:
             coded = n - sh.dc_only  # type: ignore[union-attr]
             sh_cells = _Once(lambda: occupied_cells(sh.grid_padding, sh.grid, coded))
             grids["sh"] = (sh.grid, coded, sh_cells, _cell_selector(sh.grid_padding, coded, sh_cells))
-        ycbcr = view.color == "ycbcr"
         by_blocks = stage is not None and stage.inverts_row_blocks and not view.sh.lossless  # type: ignore[union-attr]
         streamed = {name: (_FeatureCodes if name == "sh" and by_blocks else _Dequantized)(
                         entry, grids[name][1], grids[name][3], ycbcr)
@@ -104,19 +113,12 @@ class Decoder:
                  for plan in view.chunks]
         # Largest chunks first (the SH grid dominates), so no worker is left with it at the end.
         biggest_first = sorted(range(len(tasks)), key=lambda i: -len(tasks[i].chunk.data))
-        sets = {name: entry for name, entry in view.attributes.items() if entry.coding == "set"}
-        with ThreadPoolExecutor(self.workers) as pool:
-            # Set-coded positions (LZMA and numpy, then their inverse transform: one thread) start first, beside
-            # the largest chunk, whose pictures FFmpeg decodes on several threads: queued last, they were the only
-            # work left at the end (a 1M decode: 0.15 s of one core).
-            set_futures = {name: pool.submit(_position_set, stream.chunk(e.chunks[0]), e, n, ycbcr)
-                           for name, e in sets.items()}
-            futures = {i: pool.submit(tasks[i].decode) for i in biggest_first}
-            for future in optional_bar(as_completed(futures.values()), self.progress, total=len(tasks), desc="decode",
-                                       unit="chunk", leave=False):
-                future.result()
-            planes = [futures[i].result() for i in range(len(tasks))]
-            out = {name: future.result() for name, future in set_futures.items()}
+        futures = {i: pool.submit(tasks[i].decode) for i in biggest_first}
+        for future in optional_bar(as_completed(futures.values()), self.progress, total=len(tasks), desc="decode",
+                                   unit="chunk", leave=False):
+            future.result()
+        planes = [futures[i].result() for i in range(len(tasks))]
+        out = {name: future.result() for name, future in set_futures.items()}
         features = streamed.get("sh") if isinstance(streamed.get("sh"), _FeatureCodes) else None
         values = {name: target.values() for name, target in streamed.items()
                   if target.done is None and target is not features}
@@ -133,7 +135,7 @@ class Decoder:
             sh_rest = np.zeros((n, sh_index.num_rest_coeffs(degree), 3), dtype=np.float32)
         else:
             if features is not None:  # dequantised and inverted block by block
-                dc_and_ac = features.inverse(stage, view.sh.ycbcr, self.workers)
+                dc_and_ac = features.inverse(stage, view.sh.ycbcr, pool)
             else:
                 features = values.pop("sh", np.zeros((grids["sh"][1] if "sh" in grids else n, 0)))
                 dc_and_ac = np.asarray(stage.inverse_transform(_stage_input(features, view.sh.ycbcr,
@@ -228,9 +230,9 @@ class _FeatureCodes:
         for k, plane in enumerate(planes):
             self.codes[channel + k] = _codes(plane, cells)
 
-    def inverse(self, stage: ShStage, ycbcr: bool, workers: int) -> np.ndarray:
+    def inverse(self, stage: ShStage, ycbcr: bool, pool: ThreadPoolExecutor) -> np.ndarray:
         """(N, K_in) float32: ``stage.inverse_transform`` of the dequantised features, in row blocks
-        (``workers`` threads, one BLAS thread each).
+        (on the threads of ``pool``, one BLAS thread each).
 
         Every block is ``block_rows`` tall (the last one starts early and keeps only its new rows;
         fewer rows than that: one block, the whole matrix), so the BLAS runs the same kernel for
@@ -239,7 +241,7 @@ class _FeatureCodes:
         from threadpoolctl import threadpool_limits
 
         channels, n = self.codes.shape
-        width = stage.inverse_transform(np.zeros((0, channels), np.float32)).shape[1]
+        width = stage.inverse_transform(np.zeros((0, channels), np.float32)).shape[1]  # the stage's output columns
         out = np.empty((n, width), np.float32)
         rows = min(self.block_rows, n)
 
@@ -253,7 +255,7 @@ class _FeatureCodes:
             if first != start:
                 out[start:] = into[start - first :]
 
-        with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(workers) as pool:
+        with threadpool_limits(1, user_api="blas"):
             list(pool.map(invert, range(0, n, rows or 1)))
         return out
 
