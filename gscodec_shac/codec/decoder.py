@@ -111,9 +111,13 @@ class Decoder:
         tasks = [_ChunkTask(plan, stream.chunk(plan.name), codecs[plan.codec], grids[plan.attribute][0],
                             streamed.get(plan.attribute))
                  for plan in view.chunks]
-        # Largest chunks first (the SH grid dominates), so no worker is left with it at the end.
-        biggest_first = sorted(range(len(tasks)), key=lambda i: -len(tasks[i].chunk.data))
-        futures = {i: pool.submit(tasks[i].decode) for i in biggest_first}
+        # The chunks of most pictures first (the SH grid dominates), then the largest: a decode's time goes with
+        # its pictures as much as with its bytes, and a single picture left for the end keeps a core idle for
+        # less time than a 3-picture chunk (at 4M the 0.4 MB-per-1M DC chunk, queued last by its bytes, ran
+        # alone for 0.6 s).
+        costliest_first = sorted(range(len(tasks)), key=lambda i: (-(tasks[i].plan.stop - tasks[i].plan.start),
+                                                                    -len(tasks[i].chunk.data)))
+        futures = {i: pool.submit(tasks[i].decode) for i in costliest_first}
         for future in optional_bar(as_completed(futures.values()), self.progress, total=len(tasks), desc="decode",
                                    unit="chunk", leave=False):
             future.result()
