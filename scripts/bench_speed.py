@@ -252,12 +252,16 @@ def main(argv: list[str] | None = None) -> int:
                           key=lambda row: row["wall_s"])
             median[step] = runs[len(runs) // 2]
             if len(runs) > 1:
-                print(f"{size:>5} {step} median wall {median[step]['wall_s']:.2f} s of {len(runs)} runs", flush=True)
+                for suffix in ("@baseline",) * (args.baseline is not None) + ("",):
+                    walls = sorted(row["wall_s"] for row in rows if row["size"] == size and row["step"] == step + suffix)
+                    print(f"{size:>5} {step + suffix} median wall {walls[len(walls) // 2]:.2f} s of {len(walls)} runs",
+                          flush=True)
         # the Decoder call alone, without the interpreter's start and imports (DECODE_ARRAYS prints both)
-        calls = sorted(float(row["output"].rsplit("decode ", 1)[1].split()[0])
-                       for row in rows if row["size"] == size and row["step"] == "decode_arrays")
-        print(f"{size:>5} decode_arrays: the decode call {calls[len(calls) // 2]:.2f} s (median of {len(calls)})",
-              flush=True)
+        for suffix in ("@baseline",) * (args.baseline is not None) + ("",):
+            calls = sorted(float(row["output"].rsplit("decode ", 1)[1].split()[0])
+                           for row in rows if row["size"] == size and row["step"] == "decode_arrays" + suffix)
+            print(f"{size:>5} decode_arrays{suffix}: the decode call {calls[len(calls) // 2]:.2f} s "
+                  f"(median of {len(calls)})", flush=True)
         decode = median["decode"]  # for the ratio to splat-transform's read
         if not args.no_target:
             checkouts = ([("@baseline", args.baseline.resolve())] if args.baseline is not None else []) + [("", ROOT)]
