@@ -21,7 +21,9 @@ from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.io.ply import read_ply, write_ply
 from gscodec_shac.row_blocks import GatheredRows
 from gscodec_shac.shac.base import check_ac_matrix
+from gscodec_shac.shac.identity import IdentityStage
 from gscodec_shac.shac.pca import ShacPCA
+from gscodec_shac.shac.truncation import TruncationStage
 
 BLOCKS = (1, 3, 7, 1000)
 STREAMS = Path(__file__).parent / "fixtures" / "streams"
@@ -178,29 +180,34 @@ def test_the_placement_view_shares_all_rows_and_copies_a_subset():
 
 # ------------------------------------------------------------------- decoder
 @pytest.fixture(scope="module")
-def pca_streams() -> list[bytes]:
-    """SHAC-PCA streams: 3,000 Gaussians (blocks of thousands of rows), DC in the PCA, DC-only Gaussians."""
+def row_block_streams() -> list[bytes]:
+    """Streams of the stages that invert row blocks: 3,000 Gaussians (blocks of thousands of rows) with
+    SHAC-PCA, with no stage (the AC coefficients in YCbCr) and truncated to degree 2; the DC in the PCA
+    and DC-only Gaussians (fixtures)."""
     point = load_rate_point_file(builtin_rate_point_files()["shac_ladder"])["rp6"]
     cloud = _cloud(n=3000, seed=4)
-    streams = [Encoder(point, sh_stage="pca", sh_params={"energy_retention": 0.97}).encode(cloud).to_bytes()]
+    streams = [Encoder(point, sh_stage=stage, sh_params=params).encode(cloud).to_bytes()
+               for stage, params in (("pca", {"energy_retention": 0.97}), ("none", {}), ("trunc", {"degree": 2}))]
     return streams + [(STREAMS / f"{name}.gsc").read_bytes() for name in ("v1.0/table3_rp3_pca_dc",
                                                                           "v2.3/ladder_rp4_pca_dc_only")]
 
 
 @pytest.mark.parametrize("block", [1000, 1024, 2999, 1 << 16])
-def test_sh_features_inverted_in_row_blocks_decode_to_the_whole_inverse(monkeypatch, pca_streams, block):
-    """SHAC-PCA's features dequantised and inverted block by block (as they are decoded) are the
+def test_sh_features_inverted_in_row_blocks_decode_to_the_whole_inverse(monkeypatch, row_block_streams, block):
+    """The SH features dequantised and inverted block by block (as they are decoded) are the
     whole-matrix inverse bit for bit, whether the blocks divide N or not (a last block of 1 row)."""
     calls = []
     inverse = decoder_module._FeatureCodes.inverse
     monkeypatch.setattr(decoder_module._FeatureCodes, "inverse", lambda self, *a: calls.append(1) or inverse(self, *a))
-    for data in pca_streams:
-        monkeypatch.setattr(ShacPCA, "inverts_row_blocks", False)
+    monkeypatch.setattr(decoder_module._FeatureCodes, "block_rows", block)
+    for data in row_block_streams:
+        for stage in (ShacPCA, IdentityStage, TruncationStage):
+            monkeypatch.setattr(stage, "inverts_row_blocks", False)
         whole = Decoder(workers=2).decode(data)
-        monkeypatch.setattr(ShacPCA, "inverts_row_blocks", True)
-        monkeypatch.setattr(decoder_module._FeatureCodes, "block_rows", block)
+        for stage in (ShacPCA, IdentityStage, TruncationStage):
+            monkeypatch.setattr(stage, "inverts_row_blocks", True)
         assert Decoder(workers=2).decode(data).equals(whole)
-    assert len(calls) == len(pca_streams)
+    assert len(calls) == len(row_block_streams)
 
 
 @pytest.mark.parametrize("name", ["v1.0/custom_lossless_drop", "v2.3/custom_lossless_drop_dc_only"])

@@ -15,6 +15,7 @@ class IdentityStage(ShStage):
     summary = "no SH stage: every AC coefficient is coded (the baseline)"
     feature_kind = "coefficients"
     rate_attribute = "sh_ac"
+    inverts_row_blocks = True  # each row's inverse is a copy of its own features
 
     def __init__(self) -> None:
         self.n_columns_: int | None = None

@@ -24,6 +24,7 @@ class TruncationStage(ShStage):
     summary = "truncation to a lower SH degree (higher degrees dropped)"
     feature_kind = "coefficients"
     rate_attribute = "sh_ac"
+    inverts_row_blocks = True  # each row's inverse is a copy of its own features
     params = (StageParam("degree", "int", 2, "SH degree L' kept", flag="degree", lo=0, hi=3),)
 
     def __init__(self, degree: int = 2) -> None:
