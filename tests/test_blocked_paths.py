@@ -22,11 +22,13 @@ from gscodec_shac.io.ply import read_ply, write_ply
 from gscodec_shac.row_blocks import GatheredRows
 from gscodec_shac.shac.base import check_ac_matrix
 from gscodec_shac.shac.identity import IdentityStage
+from gscodec_shac.shac.lst import ShacLST
 from gscodec_shac.shac.pca import ShacPCA
 from gscodec_shac.shac.truncation import TruncationStage
 
 BLOCKS = (1, 3, 7, 1000)
 STREAMS = Path(__file__).parent / "fixtures" / "streams"
+ROW_BLOCK_STAGES = (ShacPCA, ShacLST, IdentityStage, TruncationStage)
 
 
 def _cloud(n: int = 53, degree: int = 3, seed: int = 0) -> GaussianCloud:
@@ -182,12 +184,13 @@ def test_the_placement_view_shares_all_rows_and_copies_a_subset():
 @pytest.fixture(scope="module")
 def row_block_streams() -> list[bytes]:
     """Streams of the stages that invert row blocks: 3,000 Gaussians (blocks of thousands of rows) with
-    SHAC-PCA, with no stage (the AC coefficients in YCbCr) and truncated to degree 2; the DC in the PCA
-    and DC-only Gaussians (fixtures)."""
+    SHAC-PCA, SHAC-LST, no stage (the AC coefficients in YCbCr) and truncated to degree 2; the DC in
+    the PCA and DC-only Gaussians (fixtures)."""
     point = load_rate_point_file(builtin_rate_point_files()["shac_ladder"])["rp6"]
     cloud = _cloud(n=3000, seed=4)
     streams = [Encoder(point, sh_stage=stage, sh_params=params).encode(cloud).to_bytes()
-               for stage, params in (("pca", {"energy_retention": 0.97}), ("none", {}), ("trunc", {"degree": 2}))]
+               for stage, params in (("pca", {"energy_retention": 0.97}), ("lst", {}), ("none", {}),
+                                     ("trunc", {"degree": 2}))]
     return streams + [(STREAMS / f"{name}.gsc").read_bytes() for name in ("v1.0/table3_rp3_pca_dc",
                                                                           "v2.3/ladder_rp4_pca_dc_only")]
 
@@ -201,10 +204,10 @@ def test_sh_features_inverted_in_row_blocks_decode_to_the_whole_inverse(monkeypa
     monkeypatch.setattr(decoder_module._FeatureCodes, "inverse", lambda self, *a: calls.append(1) or inverse(self, *a))
     monkeypatch.setattr(decoder_module._FeatureCodes, "block_rows", block)
     for data in row_block_streams:
-        for stage in (ShacPCA, IdentityStage, TruncationStage):
+        for stage in ROW_BLOCK_STAGES:
             monkeypatch.setattr(stage, "inverts_row_blocks", False)
         whole = Decoder(workers=2).decode(data)
-        for stage in (ShacPCA, IdentityStage, TruncationStage):
+        for stage in ROW_BLOCK_STAGES:
             monkeypatch.setattr(stage, "inverts_row_blocks", True)
         assert Decoder(workers=2).decode(data).equals(whole)
     assert len(calls) == len(row_block_streams)

@@ -238,6 +238,7 @@ class ShacLST(ShStage):
     summary = "SHAC-LST: a per-Gaussian SH subset S and a shared block-diagonal T (eq. 32-36), post-hoc fit"
     feature_kind = "coefficients"
     rate_attribute = "sh_features"
+    inverts_row_blocks = True  # each row's A~ = S T (eq. 33) from its own S row
     params = (
         StageParam("degree", "int", None, "subset degree L (default: the scene's degree)", flag="degree",
                    lo=1, hi=sh_index.MAX_SH_DEGREE),
