@@ -27,7 +27,7 @@ def test_a_c_library_without_mallopt_is_left_alone(monkeypatch):
 
 
 @pytest.mark.parametrize("argv, trims", [
-    (["decode", "in.gsc", "out.ply"], True),
+    (["decode", "in.gsc", "out.ply"], False),
     (["convert", "in.spz", "out.ply"], True),
     (["encode", "in.ply", "out.gsc", "-r", "shac_ladder:rp4"], True),
     (["encode", "in.ply", "out.gsc", "--target-bpg", "50"], False),
@@ -37,7 +37,8 @@ def test_a_c_library_without_mallopt_is_left_alone(monkeypatch):
 ])
 def test_only_one_pass_commands_return_freed_memory(argv, trims):
     """A trim threshold of 0 makes glibc map large blocks afresh each time: kept for the one-pass
-    encodes and decodes (their peak memory), not for runs that render the same cloud many times."""
+    encodes and conversions (their peak memory), not for decodes (20% of their time, their peak well
+    inside the bar) nor runs that render the same cloud many times."""
     from gscodec_shac.cli import build_parser
 
     assert heap.returns_freed_memory(build_parser().parse_args(argv)) is trims
