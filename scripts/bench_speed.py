@@ -186,6 +186,7 @@ def main(argv: list[str] | None = None) -> int:
     if peer is None:
         print(f"splat-transform: skipped ({'--no-peer' if args.no_peer else unavailable_reason()})")
     rows: list[dict] = []
+    suffixes = ("@baseline",) * (args.baseline is not None) + ("",)  # the steps' names: the baseline's, ours
 
     def record(size: str, step: str, result: dict) -> dict:
         row = {"size": size, "step": step, **result}
@@ -252,12 +253,12 @@ def main(argv: list[str] | None = None) -> int:
                           key=lambda row: row["wall_s"])
             median[step] = runs[len(runs) // 2]
             if len(runs) > 1:
-                for suffix in ("@baseline",) * (args.baseline is not None) + ("",):
+                for suffix in suffixes:
                     walls = sorted(row["wall_s"] for row in rows if row["size"] == size and row["step"] == step + suffix)
                     print(f"{size:>5} {step + suffix} median wall {walls[len(walls) // 2]:.2f} s of {len(walls)} runs",
                           flush=True)
         # the Decoder call alone, without the interpreter's start and imports (DECODE_ARRAYS prints both)
-        for suffix in ("@baseline",) * (args.baseline is not None) + ("",):
+        for suffix in suffixes:
             calls = sorted(float(row["output"].rsplit("decode ", 1)[1].split()[0])
                            for row in rows if row["size"] == size and row["step"] == "decode_arrays" + suffix)
             print(f"{size:>5} decode_arrays{suffix}: the decode call {calls[len(calls) // 2]:.2f} s "
