@@ -215,25 +215,26 @@ def test_hevc_frames_layout_fixes_the_frame_types():
     assert _frame_types(with_b, smooth) == _frame_types(with_b, noise) and "B" in _frame_types(with_b, smooth)
 
 
-def test_hevc_frames_layout_searches_motion_with_the_diamond(tmp_path, monkeypatch):
+def test_hevc_long_frames_streams_take_the_narrower_analysis(tmp_path, monkeypatch):
     """The frames are different channels on one grid, not a moving picture: streams of
-    DIAMOND_MIN_FRAMES frames or more (the SH ones) use x265's diamond search (``me=dia``: 28% less
-    CPU than the slow preset's star search on a 29-frame SH stream, the same bytes within 0.1%;
-    docs/benchmarks.md). Shorter ones (rotation, scale, DC) and single pictures keep the preset's.
-    Read back from the options x265 was given (``GSCODEC_X265_DUMP``)."""
+    LONG_STREAM_MIN_FRAMES frames or more (the SH ones) use x265's diamond search and the medium
+    preset's analysis (LONG_STREAM_PARAMS: 21% less x265 CPU again on a 1M SH stream at +0.01%
+    BD-rate over its samples; docs/benchmarks.md). Shorter ones (rotation, scale, DC) and single
+    pictures keep the preset's. Read back from the options x265 was given (``GSCODEC_X265_DUMP``)."""
     import json
 
-    from gscodec_shac.codec.grid.hevc import DIAMOND_MIN_FRAMES
+    from gscodec_shac.codec.grid.hevc import LONG_STREAM_MIN_FRAMES, LONG_STREAM_PARAMS
 
     monkeypatch.setenv("GSCODEC_X265_PROCESSES", "0")  # coded here, so this process writes the records
     monkeypatch.setenv("GSCODEC_X265_DUMP", str(tmp_path))
-    many = smooth_planes((DIAMOND_MIN_FRAMES, 40, 80), 10)
+    many = smooth_planes((LONG_STREAM_MIN_FRAMES, 40, 80), 10)
     frames = get_codec("hevc", layout="frames").encode(many, 10, 22)
-    get_codec("hevc", layout="frames").encode(many[: DIAMOND_MIN_FRAMES - 1], 10, 22)
+    get_codec("hevc", layout="frames").encode(many[: LONG_STREAM_MIN_FRAMES - 1], 10, 22)
     get_codec("hevc", layout="gray").encode(many[:2], 10, 22)
     records = [json.loads(line) for path in tmp_path.glob("x265-*.jsonl") for line in path.read_text().splitlines()]
-    diamond = {len(r["shape"]): ":me=dia" in r["options"]["x265-params"] for r in records}
-    assert diamond == {DIAMOND_MIN_FRAMES: True, DIAMOND_MIN_FRAMES - 1: False, 1: False}, records
+    narrowed = {len(r["shape"]): LONG_STREAM_PARAMS in r["options"]["x265-params"] for r in records}
+    assert narrowed == {LONG_STREAM_MIN_FRAMES: True, LONG_STREAM_MIN_FRAMES - 1: False, 1: False}, records
+    assert not any(":me=" in r["options"]["x265-params"] for r in records if len(r["shape"]) < LONG_STREAM_MIN_FRAMES)
     decoded = get_codec("hevc", layout="frames").decode(frames, many.shape, 10)
     assert np.abs(decoded.astype(int) - many).max() < 40
 

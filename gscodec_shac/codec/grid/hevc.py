@@ -12,7 +12,7 @@ elementary streams (:func:`~gscodec_shac.codec.grid.base.join_chunks`):
   prediction can exploit their correlation (one I frame, ``keyint=C``,
   ``scenecut=0``; P frames only unless ``bframes`` is given, at fixed places:
   ``b-adapt=0``; no weighted prediction: ``weightp=0``; with 5 frames or more,
-  diamond motion search: ``me=dia``, see below). With the presets' adaptive
+  a narrower analysis: :data:`LONG_STREAM_PARAMS`, see below). With the presets' adaptive
   B frames or weighted P frames x265 now and then wrote other bytes for the same
   input in a worker that had coded other streams before (docs/reliability.md,
   "x265 run-to-run differences"); with these settings it never did in the loops
@@ -20,10 +20,15 @@ elementary streams (:func:`~gscodec_shac.codec.grid.base.join_chunks`):
   QP than with the preset's B frames (bonsai, chair). The frames are different attributes
   of the same Gaussians, not a moving picture, so on the long SH streams the preset's wide
   star search finds nothing the diamond search misses: ``me=dia`` took 28% less x265 CPU
-  for a 29-frame SH stream, at 0.03% fewer bytes and the same PSNR. On the 3- and 4-frame
-  streams (rotation, scale, DC) it saved little and moved bonsai's renders at the top rate
-  points by up to -0.19 dB, so those keep the preset's search (docs/benchmarks.md,
-  "Diamond motion search for the frames layout").
+  for a 29-frame SH stream, at 0.03% fewer bytes and the same PSNR. Nor do the slow
+  preset's rectangular partitions, 4 references, RD level 4, sub-pixel level 3 and full
+  intra search: without them (the medium preset's analysis, the slow preset's RDOQ kept)
+  the SH stream of a 1M encode took 21% less x265 CPU again, at a BD-rate of +0.01% over
+  its samples (docs/benchmarks.md, "A narrower x265 analysis for the long SH streams").
+  On the 3- and 4-frame streams (rotation, scale, DC) the diamond search moved bonsai's
+  renders at the top rate points by up to -0.19 dB and ``rect=0`` cost 3-4% BD-rate over
+  their samples, so those keep the preset's analysis (docs/benchmarks.md, "Diamond motion
+  search for the frames layout").
 
 Every stream uses ``qp=Q:ipratio=1:pbratio=1`` (all frames at exactly QP Q; without
 ``ipratio=1`` x265 codes an intra frame ~3 QP finer), ``info=0`` (no 2 KB settings
@@ -65,8 +70,13 @@ TUNES = ("psnr", "ssim", "grain", "fastdecode", "zerolatency", "animation")
 _GRAY_FMT = {8: "gray", 10: "gray10le", 12: "gray12le"}
 _YUV444_FMT = {8: "yuv444p", 10: "yuv444p10le", 12: "yuv444p12le"}
 _QUIET = "info=0:log-level=error"
-#: Frames layout streams of at least this many frames search motion with x265's diamond.
-DIAMOND_MIN_FRAMES = 5
+#: Frames layout streams of at least this many frames (the SH features, the AC bands) are
+#: analysed with :data:`LONG_STREAM_PARAMS`.
+LONG_STREAM_MIN_FRAMES = 5
+#: x265 parameters of the long frames streams, on top of the preset: diamond motion search, and
+#: the medium preset's analysis (no rectangular partitions, early skip, RD level 3, sub-pixel
+#: level 2, 3 references, no mode limiting) with a fast intra search, the slow preset's RDOQ kept.
+LONG_STREAM_PARAMS = ":me=dia:rect=0:early-skip=1:rd=3:subme=2:ref=3:limit-modes=0:fast-intra=1"
 
 
 @register_codec
@@ -142,7 +152,7 @@ class HevcCodec(GridCodec):
                 frames, pix_fmt, gop = list(grid[first : first + n_frames]), _GRAY_FMT[depth], ""
                 if n_frames > 1:  # the frames layout: one I frame, then inter frames of fixed types
                     gop = f":keyint={n_frames}:min-keyint={n_frames}:scenecut=0:b-adapt=0:weightp=0"
-                    gop += ":me=dia" if n_frames >= DIAMOND_MIN_FRAMES else ""
+                    gop += LONG_STREAM_PARAMS if n_frames >= LONG_STREAM_MIN_FRAMES else ""
                     gop += f":bframes={self.bframes}" if self.bframes is not None else ""
             parts.append((sum(f.size for f in frames), functools.partial(self._encode_stream, frames, pix_fmt, qp, gop)))
         head = bytes([LAYOUTS.index(self.layout), shift])
