@@ -44,8 +44,13 @@ def _cloud(n: int = 53, degree: int = 3, seed: int = 0) -> GaussianCloud:
 
 
 # ----------------------------------------------------------------------- PLY
+@pytest.mark.parametrize("split", [False, True])
 @pytest.mark.parametrize("degree", [0, 3])
-def test_a_binary_ply_read_in_row_blocks_is_the_cloud_written(tmp_path, degree):
+def test_a_binary_ply_read_in_row_blocks_is_the_cloud_written(tmp_path, monkeypatch, degree, split):
+    """Also read in two threads (each half of the rows), as files of SPLIT_READ_ROWS vertices or more are."""
+    from gscodec_shac.io import ply
+
+    monkeypatch.setattr(ply, "SPLIT_READ_ROWS", 2 if split else 1 << 62)
     cloud = _cloud(degree=degree)
     path = tmp_path / "c.ply"
     write_ply(path, cloud)
@@ -53,6 +58,18 @@ def test_a_binary_ply_read_in_row_blocks_is_the_cloud_written(tmp_path, degree):
         read = read_ply(path, block_rows=block)
         assert read.equals(cloud), block
         assert read.extra["label"].dtype == np.int16 and read.extra["weight"].dtype == np.float64
+
+
+def test_a_ply_read_in_two_threads_reports_a_truncated_second_half(tmp_path, monkeypatch):
+    from gscodec_shac.errors import PlyFormatError
+    from gscodec_shac.io import ply
+
+    monkeypatch.setattr(ply, "SPLIT_READ_ROWS", 2)
+    path = tmp_path / "c.ply"
+    write_ply(path, _cloud())
+    path.write_bytes(path.read_bytes()[:-10])
+    with pytest.raises(PlyFormatError, match="truncated"):
+        read_ply(path)
 
 
 def test_row_blocks_of_a_big_endian_double_ply_after_another_element(tmp_path):
