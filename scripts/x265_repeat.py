@@ -21,6 +21,12 @@ Two sub-commands over directories written with ``GSCODEC_X265_DUMP=DIR``
     options set another), decode it, and print per setting the bytes, the PSNR of the decoded samples
     against x265's input (the sample range of its bit depth) and the CPU seconds, in total and per piece.
 
+``curve DIR --piece K --offsets=-2,0,2 --extra :rect=0 [--preset medium] ...``  the K-th largest kept piece
+    coded at its recorded QP plus each offset, under the recorded options and under each ``--extra`` (a
+    ``--preset`` per ``--extra``, optional, replaces the recorded preset); per setting the BD-rate of its
+    (bytes, sample PSNR) curve against the recorded options' curve and the CPU seconds relative to theirs
+    (docs/benchmarks.md, "A narrower x265 analysis for the long SH streams").
+
 Example (a stress loop under load):
     for i in 1 2 3; do GSCODEC_X265_DUMP=out/d$i gscodec-shac encode scene.ply out/r$i.gsc \\
         -r shac_ladder:rp4 --sh pca --er 0.97 -q; done
@@ -35,6 +41,7 @@ import collections
 import glob
 import json
 import os
+import re
 import resource
 import time
 from typing import Any, Callable
@@ -118,39 +125,102 @@ def repeat(folder: str, times: int, extra: str, sizes: tuple[int, int] = (0, 2**
     return changed
 
 
-def options(folder: str, extras: list[str]) -> None:
-    """Per x265 parameter set: total bytes, PSNR of the decoded samples, CPU seconds (docs/benchmarks.md,
-    "Diamond motion search for the frames layout")."""
-    import numpy as np
-
-    from gscodec_shac.codec.grid.hevc import _GRAY_FMT, _YUV444_FMT, _decoded_frames, _planes_from_frame
-
-    depths = {fmt: depth for table in (_GRAY_FMT, _YUV444_FMT) for depth, fmt in table.items()}
+def _pieces(folder: str) -> dict:
+    """The recorded pieces, one per (input, settings), or one clear error for a folder without records."""
     pieces = {}
     for row in _records(folder):
         pieces.setdefault((row["input"], _settings(row)), row)
     if not pieces:
         raise SystemExit(f"{folder}: no x265 records (write them with GSCODEC_X265_DUMP={folder} during an encode)")
+    return pieces
+
+
+def _code_and_measure(folder: str, source: str, row: dict, settings: dict) -> tuple[int, float, int, float]:
+    """A recorded piece coded under ``settings``: (stream bytes, squared error of its decoded samples
+    against x265's input, samples, CPU seconds of the x265 worker)."""
+    import numpy as np
+
+    from gscodec_shac.codec.grid.hevc import _decoded_frames, _planes_from_frame
+
+    frames = x265_dump.load_frames(os.path.join(folder, f"frames-{source[:16]}.npz"))
+    stream, cpu = _workers_cpu(lambda: x265_processes.encode(frames, row["pix_fmt"], settings))
+    chroma = 3 if frames[0].ndim == 3 else 0
+    height, width = frames[0].shape[-2:]
+    decoded = [_planes_from_frame(f, 0, height, width, chroma).astype(np.float64) for f in _decoded_frames(stream, 0)]
+    error = sum(float(((d - f.reshape(d.shape)) ** 2).sum()) for d, f in zip(decoded, frames))
+    return len(stream), error, sum(f.size for f in frames), cpu
+
+
+def _psnr(squared: float, samples: int, pix_fmt: str) -> float:
+    """PSNR of a squared error over ``samples`` samples, peak the sample range of ``pix_fmt``'s bit depth."""
+    import numpy as np
+
+    from gscodec_shac.codec.grid.hevc import _GRAY_FMT, _YUV444_FMT
+
+    depths = {fmt: depth for table in (_GRAY_FMT, _YUV444_FMT) for depth, fmt in table.items()}
+    peak = float((1 << depths[pix_fmt]) - 1)
+    return float(10 * np.log10(peak**2 / max(squared / samples, 1e-12)))
+
+
+def options(folder: str, extras: list[str]) -> None:
+    """Per x265 parameter set: total bytes, PSNR of the decoded samples, CPU seconds (docs/benchmarks.md,
+    "Diamond motion search for the frames layout")."""
+    pieces = _pieces(folder)
     for extra in ["", *extras]:
         total_bytes, total_cpu, squared, samples, per_piece = 0, 0.0, 0.0, 0, []
         for (source, _), row in sorted(pieces.items(), key=lambda kv: -kv[1]["bytes"]):
-            frames = x265_dump.load_frames(os.path.join(folder, f"frames-{source[:16]}.npz"))
             settings = dict(row["options"], **{"x265-params": row["options"]["x265-params"] + extra})
-            stream, cpu = _workers_cpu(lambda: x265_processes.encode(frames, row["pix_fmt"], settings))
-            chroma = 3 if frames[0].ndim == 3 else 0
-            height, width = frames[0].shape[-2:]
-            decoded = [_planes_from_frame(f, 0, height, width, chroma).astype(np.float64)
-                       for f in _decoded_frames(stream, 0)]
-            error = sum(float(((d - f.reshape(d.shape)) ** 2).sum()) for d, f in zip(decoded, frames))
-            count = sum(f.size for f in frames)
-            peak = float((1 << depths[row["pix_fmt"]]) - 1)
-            psnr = 10 * np.log10(peak**2 / max(error / count, 1e-12))
-            per_piece.append(f"{len(frames)}x {len(stream)} B {psnr:.2f} dB {cpu:.2f} s")
-            total_bytes, total_cpu, squared, samples = total_bytes + len(stream), total_cpu + cpu, squared + error, samples + count
-        psnr = 10 * np.log10(1023.0**2 / max(squared / samples, 1e-12))
-        print(f"{extra or '(recorded)':32s} {total_bytes:>11,} B  {psnr:.3f} dB (10-bit peak)  {total_cpu:6.2f} CPU s | "
-              + "; ".join(per_piece), flush=True)
+            size, error, count, cpu = _code_and_measure(folder, source, row, settings)
+            per_piece.append(f"{len(row['shape'])}x {size} B "
+                             f"{_psnr(error, count, row['pix_fmt']):.2f} dB {cpu:.2f} s")
+            total_bytes, total_cpu, squared, samples = total_bytes + size, total_cpu + cpu, squared + error, samples + count
+        print(f"{extra or '(recorded)':32s} {total_bytes:>11,} B  {_psnr(squared, samples, 'gray10le'):.3f} dB "
+              f"(10-bit peak)  {total_cpu:6.2f} CPU s | " + "; ".join(per_piece), flush=True)
     print(f"pieces {len(pieces)}; load {os.getloadavg()[0]:.2f}")
+
+
+def curve(folder: str, piece: int, offsets: list[int], extras: list[str], presets: list[str] | None = None) -> dict:
+    """The ``piece``-th largest recorded piece at its QP plus ``offsets``, under the recorded options and each
+    of ``extras`` (with ``presets[i]`` replacing the preset when given): per setting its BD-rate over the
+    sample PSNR against the recorded options, and its CPU relative to theirs. Returns {setting: (BD-rate %, CPU ratio)}."""
+    from gscodec_shac.rd.bd import bd_rate
+
+    ranked = sorted(_pieces(folder).items(), key=lambda kv: -kv[1]["bytes"])
+    if not 0 <= piece < len(ranked):
+        raise SystemExit(f"{folder}: --piece must be 0-{len(ranked) - 1}, got {piece}")
+    (source, _), row = ranked[piece]
+    recorded = row["options"]["x265-params"]
+    match = re.search(r"(?:^|:)qp=(\d+)", recorded)
+    if match is None:
+        raise SystemExit(f"{folder}: piece {piece} is lossless (no qp= in its options): it has no curve")
+    qp = int(match.group(1))
+    qps = [qp + offset for offset in offsets]
+    if min(qps) < 0 or max(qps) > 51:
+        raise SystemExit(f"QPs {qps} leave x265's range 0-51 (the recorded QP is {qp})")
+    print(f"piece {piece}: {len(row['shape'])} frame(s) {row['shape'][0]} {row['pix_fmt']}, recorded {recorded}")
+    presets = presets or []
+    points: dict[str, list[tuple[int, float, float]]] = {}
+    for index, extra in enumerate(["", *extras]):
+        label = extra or "(recorded)"
+        preset = presets[index - 1] if index and index - 1 < len(presets) and presets[index - 1] else None
+        if preset:
+            label = f"preset {preset} {label}"
+        for value in qps:
+            params = re.sub(r"(^|:)qp=\d+", f"\\g<1>qp={value}", recorded) + extra
+            settings = dict(row["options"], **{"x265-params": params}, **({"preset": preset} if preset else {}))
+            size, error, count, cpu = _code_and_measure(folder, source, row, settings)
+            points.setdefault(label, []).append((size, _psnr(error, count, row["pix_fmt"]), cpu))
+            print(f"  {label:40s} qp {value:2d} {size:>11,} B {points[label][-1][1]:.3f} dB {cpu:.2f} s", flush=True)
+    reference = points["(recorded)"]
+    result = {}
+    for label, curve_points in points.items():
+        bd = bd_rate([p[0] for p in reference], [p[1] for p in reference],
+                     [p[0] for p in curve_points], [p[1] for p in curve_points])
+        cpu = sum(p[2] for p in curve_points) / max(sum(p[2] for p in reference), 1e-9)
+        value = bd.value if bd.value is not None else float("nan")
+        result[label] = (value, cpu)
+        print(f"{label:40s} BD-rate {value:+.3f}%  CPU {sum(p[2] for p in curve_points):.2f} s ({cpu:.3f}x)", flush=True)
+    return result
 
 
 def shuffle(folder: str, rounds: int, seed: int = 0, extra: str = "") -> int:
@@ -211,8 +281,17 @@ def main() -> None:
     opt_parser = commands.add_parser("options")
     opt_parser.add_argument("folder")
     opt_parser.add_argument("--extra", action="append", default=[], help="x265 parameters appended (repeatable)")
+    curve_parser = commands.add_parser("curve")
+    curve_parser.add_argument("folder")
+    curve_parser.add_argument("--piece", type=int, default=0, help="the K-th largest recorded piece (0: the largest)")
+    curve_parser.add_argument("--offsets", default="-2,0,2", help="QP offsets from the recorded QP")
+    curve_parser.add_argument("--extra", action="append", default=[], help="x265 parameters appended (repeatable)")
+    curve_parser.add_argument("--preset", action="append", default=[],
+                              help="x265 preset for the --extra of the same position ('' keeps the recorded one)")
     args = parser.parse_args()
-    if args.command == "options":
+    if args.command == "curve":
+        curve(args.folder, args.piece, [int(v) for v in args.offsets.split(",")], args.extra, args.preset)
+    elif args.command == "options":
         options(args.folder, args.extra)
     elif args.command == "compare":
         compare(args.folders)
