@@ -12,15 +12,20 @@ from gscodec_shac.codec.grid import get_codec
 from tests.conftest import load_script
 
 
-def test_options_recodes_the_recorded_streams_and_reports_bytes_and_psnr(tmp_path, monkeypatch, capsys):
-    rng = np.random.default_rng(1)
+def _recorded_frames_stream(folder, monkeypatch, qp=20, seed=1):
+    """Record (GSCODEC_X265_DUMP) one 6-frame ``frames`` stream of smooth 10-bit planes at ``qp``."""
+    rng = np.random.default_rng(seed)
     base = np.cumsum(np.cumsum(rng.normal(size=(48, 96)), 0), 1)
     planes = np.stack([base * (1 + 0.1 * k) for k in range(6)])
     planes = ((planes - planes.min()) / np.ptp(planes) * 1023).astype(np.uint16)
-    monkeypatch.setenv("GSCODEC_X265_DUMP", str(tmp_path))
+    monkeypatch.setenv("GSCODEC_X265_DUMP", str(folder))
     monkeypatch.setenv("GSCODEC_X265_PROCESSES", "0")
-    get_codec("hevc", layout="frames").encode(planes, 10, 20)
+    get_codec("hevc", layout="frames").encode(planes, 10, qp)
     monkeypatch.delenv("GSCODEC_X265_DUMP")
+
+
+def test_options_recodes_the_recorded_streams_and_reports_bytes_and_psnr(tmp_path, monkeypatch, capsys):
+    _recorded_frames_stream(tmp_path, monkeypatch)
     recorded = [json.loads(line) for p in tmp_path.glob("x265-*.jsonl") for line in p.read_text().splitlines()]
     assert len(recorded) == 1
 
@@ -38,20 +43,9 @@ def test_options_on_a_folder_without_records_is_one_clear_error(tmp_path):
         load_script("x265_repeat").options(str(tmp_path), [":me=star"])
 
 
-def _recorded_frames_stream(folder, monkeypatch, qp=20):
-    rng = np.random.default_rng(2)
-    base = np.cumsum(np.cumsum(rng.normal(size=(48, 96)), 0), 1)
-    planes = np.stack([base * (1 + 0.1 * k) for k in range(6)])
-    planes = ((planes - planes.min()) / np.ptp(planes) * 1023).astype(np.uint16)
-    monkeypatch.setenv("GSCODEC_X265_DUMP", str(folder))
-    monkeypatch.setenv("GSCODEC_X265_PROCESSES", "0")
-    get_codec("hevc", layout="frames").encode(planes, 10, qp)
-    monkeypatch.delenv("GSCODEC_X265_DUMP")
-
-
 def test_curve_gives_each_setting_its_bd_rate_against_the_recorded_options(tmp_path, monkeypatch, capsys):
     """A no-op parameter codes the same curve (BD-rate 0); 4x4 transforms only on smooth planes cost bytes."""
-    _recorded_frames_stream(tmp_path, monkeypatch)
+    _recorded_frames_stream(tmp_path, monkeypatch, seed=2)
     result = load_script("x265_repeat").curve(str(tmp_path), 0, [-3, 0, 3], [":cbqpoffs=0", ":max-tu-size=4"])
     assert result["(recorded)"] == (0.0, 1.0)
     assert result[":cbqpoffs=0"][0] == pytest.approx(0.0, abs=1e-9)
@@ -60,7 +54,7 @@ def test_curve_gives_each_setting_its_bd_rate_against_the_recorded_options(tmp_p
 
 
 def test_curve_refuses_qps_outside_x265s_range_and_a_missing_piece(tmp_path, monkeypatch):
-    _recorded_frames_stream(tmp_path, monkeypatch, qp=1)
+    _recorded_frames_stream(tmp_path, monkeypatch, qp=1, seed=2)
     script = load_script("x265_repeat")
     with pytest.raises(SystemExit, match="range 0-51"):
         script.curve(str(tmp_path), 0, [-2, 0], [])
