@@ -69,15 +69,23 @@ def test_infinite_opacity_offers_and_applies_the_clamp(good, tmp_path):
         read_ply(_write(tmp_path / "nan.ply", table), clamp_opacity=True)
 
 
-def test_values_beyond_float32_are_refused(good, tmp_path):
+@pytest.mark.parametrize("split", [False, True])
+def test_values_beyond_float32_are_refused(good, tmp_path, monkeypatch, split):
+    """Also when the rows are read in two threads (numpy's error state is per thread: no warning leaks)."""
+    from gscodec_shac.io import ply
+
+    monkeypatch.setattr(ply, "SPLIT_READ_ROWS", 2 if split else 1 << 62)
     table = _table(good)
     wide = np.empty(table.shape, dtype=[(n, "<f8") for n in table.dtype.names])
     for name in table.dtype.names:
         wide[name] = table[name]
     np.testing.assert_array_equal(read_ply(_write(tmp_path / "double.ply", wide)).means, read_ply(good).means)
     wide["scale_0"][1] = 1e300
-    with pytest.raises(PlyFormatError, match=r"beyond float32 range.*scale_0: 1 \(vertex 1\)"):
-        read_ply(_write(tmp_path / "huge.ply", wide))
+    wide["scale_1"][-1] = -1e300  # in the second half of the rows
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an overflow warning from either thread would fail here
+        with pytest.raises(PlyFormatError, match=r"beyond float32 range.*scale_0: 1 \(vertex 1\)"):
+            read_ply(_write(tmp_path / "huge.ply", wide))
 
 
 def test_missing_and_extra_properties(good, tmp_path):

@@ -229,7 +229,8 @@ def _read_row_range(path: Path, layout: PlyLayout, offset: int, columns: dict[st
     order = "<" if layout.format == "binary_little_endian" else ">"
     dtype = np.dtype([(prop.name, order + _NUMPY_TYPES[prop.type]) for prop in vertex.properties])
     buffer = np.empty(max(0, min(block_rows, stop - first)), dtype)
-    with open(path, "rb") as handle:
+    # numpy's error state is per thread: doubles beyond float32 become inf quietly here, reported by the caller
+    with open(path, "rb") as handle, np.errstate(over="ignore", invalid="ignore"):
         handle.seek(offset + first * dtype.itemsize)
         for start in range(first, stop, block_rows):
             rows = buffer[: min(block_rows, stop - start)]
