@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import zlib
 
+import re
+
 import numpy as np
 import pytest
 
@@ -218,22 +220,28 @@ def test_hevc_frames_layout_fixes_the_frame_types():
 def test_hevc_long_frames_streams_take_the_narrower_analysis(tmp_path, monkeypatch):
     """The frames are different channels on one grid, not a moving picture: streams of
     LONG_STREAM_MIN_FRAMES frames or more (the SH ones) use x265's diamond search and the medium
-    preset's analysis (LONG_STREAM_PARAMS: 21% less x265 CPU again on a 1M SH stream at +0.01%
-    BD-rate over its samples; docs/benchmarks.md). Shorter ones (rotation, scale, DC) and single
-    pictures keep the preset's. Read back from the options x265 was given (``GSCODEC_X265_DUMP``)."""
+    preset's analysis (LONG_STREAM_PARAMS), and at QP RECT_OFF_MAX_QP or finer no rectangular
+    partitions (docs/benchmarks.md). Shorter ones (rotation, scale, DC) and single pictures keep the
+    preset's. Read back from the options x265 was given (``GSCODEC_X265_DUMP``)."""
     import json
 
-    from gscodec_shac.codec.grid.hevc import LONG_STREAM_MIN_FRAMES, LONG_STREAM_PARAMS
+    from gscodec_shac.codec.grid.hevc import LONG_STREAM_MIN_FRAMES, LONG_STREAM_PARAMS, RECT_OFF_MAX_QP
 
     monkeypatch.setenv("GSCODEC_X265_PROCESSES", "0")  # coded here, so this process writes the records
     monkeypatch.setenv("GSCODEC_X265_DUMP", str(tmp_path))
     many = smooth_planes((LONG_STREAM_MIN_FRAMES, 40, 80), 10)
-    frames = get_codec("hevc", layout="frames").encode(many, 10, 22)
-    get_codec("hevc", layout="frames").encode(many[: LONG_STREAM_MIN_FRAMES - 1], 10, 22)
-    get_codec("hevc", layout="gray").encode(many[:2], 10, 22)
+    frames = get_codec("hevc", layout="frames").encode(many, 10, RECT_OFF_MAX_QP + 1)
+    get_codec("hevc", layout="frames").encode(many[::-1], 10, RECT_OFF_MAX_QP)
+    get_codec("hevc", layout="frames").encode(many[: LONG_STREAM_MIN_FRAMES - 1], 10, RECT_OFF_MAX_QP)
+    get_codec("hevc", layout="gray").encode(many[:2], 10, RECT_OFF_MAX_QP)
     records = [json.loads(line) for path in tmp_path.glob("x265-*.jsonl") for line in path.read_text().splitlines()]
-    narrowed = {len(r["shape"]): LONG_STREAM_PARAMS in r["options"]["x265-params"] for r in records}
-    assert narrowed == {LONG_STREAM_MIN_FRAMES: True, LONG_STREAM_MIN_FRAMES - 1: False, 1: False}, records
+    seen = {(len(r["shape"]), int(re.search(r"qp=(\d+)", r["options"]["x265-params"]).group(1))):
+            (LONG_STREAM_PARAMS in r["options"]["x265-params"], ":rect=0" in r["options"]["x265-params"])
+            for r in records}
+    assert seen == {(LONG_STREAM_MIN_FRAMES, RECT_OFF_MAX_QP + 1): (True, False),
+                    (LONG_STREAM_MIN_FRAMES, RECT_OFF_MAX_QP): (True, True),
+                    (LONG_STREAM_MIN_FRAMES - 1, RECT_OFF_MAX_QP): (False, False),
+                    (1, RECT_OFF_MAX_QP): (False, False)}, records
     assert not any(":me=" in r["options"]["x265-params"] for r in records if len(r["shape"]) < LONG_STREAM_MIN_FRAMES)
     decoded = get_codec("hevc", layout="frames").decode(frames, many.shape, 10)
     assert np.abs(decoded.astype(int) - many).max() < 40

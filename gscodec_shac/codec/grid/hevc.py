@@ -20,11 +20,13 @@ elementary streams (:func:`~gscodec_shac.codec.grid.base.join_chunks`):
   QP than with the preset's B frames (bonsai, chair). The frames are different attributes
   of the same Gaussians, not a moving picture, so on the long SH streams the preset's wide
   star search finds nothing the diamond search misses: ``me=dia`` took 28% less x265 CPU
-  for a 29-frame SH stream, at 0.03% fewer bytes and the same PSNR. Nor do the slow
-  preset's rectangular partitions, 4 references, RD level 4, sub-pixel level 3 and full
+  for a 29-frame SH stream, at 0.03% fewer bytes and the same PSNR. Nor, at fine QPs, do the
+  slow preset's rectangular partitions, 4 references, RD level 4, sub-pixel level 3 and full
   intra search: without them (the medium preset's analysis, the slow preset's RDOQ kept)
-  the SH stream of a 1M encode took 21% less x265 CPU again, at a BD-rate of +0.01% over
-  its samples (docs/benchmarks.md, "A narrower x265 analysis for the long SH streams").
+  the SH stream of a 1M encode at QPs 9-13 took 21% less x265 CPU again, at a BD-rate of
+  +0.01% over its samples. At QPs above 15 the rectangular partitions pay (0.3-3% BD-rate), so
+  only finer streams drop them (:data:`RECT_OFF_MAX_QP`; docs/benchmarks.md, "A narrower x265
+  analysis for the long SH streams").
   On the 3- and 4-frame streams (rotation, scale, DC) the diamond search moved bonsai's
   renders at the top rate points by up to -0.19 dB and ``rect=0`` cost 3-4% BD-rate over
   their samples, so those keep the preset's analysis (docs/benchmarks.md, "Diamond motion
@@ -74,9 +76,12 @@ _QUIET = "info=0:log-level=error"
 #: analysed with :data:`LONG_STREAM_PARAMS`.
 LONG_STREAM_MIN_FRAMES = 5
 #: x265 parameters of the long frames streams, on top of the preset: diamond motion search, and
-#: the medium preset's analysis (no rectangular partitions, early skip, RD level 3, sub-pixel
-#: level 2, 3 references, no mode limiting) with a fast intra search, the slow preset's RDOQ kept.
-LONG_STREAM_PARAMS = ":me=dia:rect=0:early-skip=1:rd=3:subme=2:ref=3:limit-modes=0:fast-intra=1"
+#: the medium preset's analysis (early skip, RD level 3, sub-pixel level 2, 3 references, no mode
+#: limiting) with a fast intra search, the slow preset's RDOQ kept.
+LONG_STREAM_PARAMS = ":me=dia:early-skip=1:rd=3:subme=2:ref=3:limit-modes=0:fast-intra=1"
+#: Long frames streams at this QP or finer also go without rectangular partitions (``rect=0``): free
+#: there (BD-rate within +-0.03% over the samples), 0.3% to 3% dearer at QPs 16-44.
+RECT_OFF_MAX_QP = 15
 
 
 @register_codec
@@ -152,7 +157,8 @@ class HevcCodec(GridCodec):
                 frames, pix_fmt, gop = list(grid[first : first + n_frames]), _GRAY_FMT[depth], ""
                 if n_frames > 1:  # the frames layout: one I frame, then inter frames of fixed types
                     gop = f":keyint={n_frames}:min-keyint={n_frames}:scenecut=0:b-adapt=0:weightp=0"
-                    gop += LONG_STREAM_PARAMS if n_frames >= LONG_STREAM_MIN_FRAMES else ""
+                    if n_frames >= LONG_STREAM_MIN_FRAMES:
+                        gop += LONG_STREAM_PARAMS + (":rect=0" if qp is not None and qp <= RECT_OFF_MAX_QP else "")
                     gop += f":bframes={self.bframes}" if self.bframes is not None else ""
             parts.append((sum(f.size for f in frames), functools.partial(self._encode_stream, frames, pix_fmt, qp, gop)))
         head = bytes([LAYOUTS.index(self.layout), shift])
