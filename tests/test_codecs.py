@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import zlib
-
 import re
+import zlib
 
 import numpy as np
 import pytest
