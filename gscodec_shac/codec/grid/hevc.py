@@ -24,9 +24,10 @@ elementary streams (:func:`~gscodec_shac.codec.grid.base.join_chunks`):
   slow preset's rectangular partitions, 4 references, RD level 4, sub-pixel level 3 and full
   intra search: without them (the medium preset's analysis, the slow preset's RDOQ kept)
   the SH stream of a 1M encode at QPs 9-13 took 21% less x265 CPU again, at a BD-rate of
-  +0.01% over its samples. At QPs above 15 the rectangular partitions pay (0.3-3% BD-rate), so
-  only finer streams drop them (:data:`RECT_OFF_MAX_QP`; docs/benchmarks.md, "A narrower x265
-  analysis for the long SH streams").
+  +0.01% over its samples. At coarser QPs the rectangular partitions pay (0.2-0.3% BD-rate at
+  16-21, up to 3% above), so only streams at QP 21 or finer drop them (:data:`RECT_OFF_MAX_QP`:
+  the ladder's rp5-rp9 SH streams, where the encode takes longest; docs/benchmarks.md, "A narrower
+  x265 analysis for the long SH streams").
   On the 3- and 4-frame streams (rotation, scale, DC) the diamond search moved bonsai's
   renders at the top rate points by up to -0.19 dB and ``rect=0`` cost 3-4% BD-rate over
   their samples, so those keep the preset's analysis (docs/benchmarks.md, "Diamond motion
@@ -79,9 +80,9 @@ LONG_STREAM_MIN_FRAMES = 5
 #: the medium preset's analysis (early skip, RD level 3, sub-pixel level 2, 3 references, no mode
 #: limiting) with a fast intra search, the slow preset's RDOQ kept.
 LONG_STREAM_PARAMS = ":me=dia:early-skip=1:rd=3:subme=2:ref=3:limit-modes=0:fast-intra=1"
-#: Long frames streams at this QP or finer also go without rectangular partitions (``rect=0``): free
-#: there (BD-rate within +-0.03% over the samples), 0.3% to 3% dearer at QPs 16-44.
-RECT_OFF_MAX_QP = 15
+#: Long frames streams at this QP or finer also go without rectangular partitions (``rect=0``), most of
+#: the CPU saved: BD-rate over the samples +-0.03% at QPs 5-15, +0.17-0.31% at 16-21, 0.3-3% above.
+RECT_OFF_MAX_QP = 21
 
 
 @register_codec
