@@ -179,6 +179,10 @@ def options(folder: str, extras: list[str]) -> None:
     print(f"pieces {len(pieces)}; load {os.getloadavg()[0]:.2f}")
 
 
+#: ``qp=Q`` in an x265 parameter string (group 2: Q).
+_QP = re.compile(r"(^|:)qp=(\d+)")
+
+
 def curve(folder: str, piece: int, offsets: list[int], extras: list[str], presets: list[str] | None = None) -> dict:
     """The ``piece``-th largest recorded piece at its QP plus ``offsets``, under the recorded options and each
     of ``extras`` (with ``presets[i]`` replacing the preset when given): per setting its BD-rate over the
@@ -190,23 +194,21 @@ def curve(folder: str, piece: int, offsets: list[int], extras: list[str], preset
         raise SystemExit(f"{folder}: --piece must be 0-{len(ranked) - 1}, got {piece}")
     (source, _), row = ranked[piece]
     recorded = row["options"]["x265-params"]
-    match = re.search(r"(?:^|:)qp=(\d+)", recorded)
+    match = _QP.search(recorded)
     if match is None:
         raise SystemExit(f"{folder}: piece {piece} is lossless (no qp= in its options): it has no curve")
-    qp = int(match.group(1))
+    qp = int(match.group(2))
     qps = [qp + offset for offset in offsets]
     if min(qps) < 0 or max(qps) > 51:
         raise SystemExit(f"QPs {qps} leave x265's range 0-51 (the recorded QP is {qp})")
     print(f"piece {piece}: {len(row['shape'])} frame(s) {row['shape'][0]} {row['pix_fmt']}, recorded {recorded}")
-    presets = presets or []
+    presets = list(presets or [])
+    settings_tried = [("", ""), *zip(extras, presets + [""] * (len(extras) - len(presets)))]  # ("": the recorded)
     points: dict[str, list[tuple[int, float, float]]] = {}
-    for index, extra in enumerate(["", *extras]):
-        label = extra or "(recorded)"
-        preset = presets[index - 1] if index and index - 1 < len(presets) and presets[index - 1] else None
-        if preset:
-            label = f"preset {preset} {label}"
+    for extra, preset in settings_tried:
+        label = (f"preset {preset} " if preset else "") + (extra or "(recorded)")
         for value in qps:
-            params = re.sub(r"(^|:)qp=\d+", f"\\g<1>qp={value}", recorded) + extra
+            params = _QP.sub(f"\\g<1>qp={value}", recorded) + extra
             settings = dict(row["options"], **{"x265-params": params}, **({"preset": preset} if preset else {}))
             size, error, count, cpu = _code_and_measure(folder, source, row, settings)
             points.setdefault(label, []).append((size, _psnr(error, count, row["pix_fmt"]), cpu))
