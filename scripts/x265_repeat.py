@@ -1,6 +1,6 @@
 """Is a run-to-run byte difference in x265's input (ours) or in x265? (docs/reliability.md)
 
-Two sub-commands over directories written with ``GSCODEC_X265_DUMP=DIR``
+Sub-commands over directories written with ``GSCODEC_X265_DUMP=DIR``
 (:mod:`gscodec_shac.codec.grid.x265_dump`):
 
 ``compare DIR...``  one directory per run of the same encode: for every input (frames'
@@ -26,6 +26,8 @@ Two sub-commands over directories written with ``GSCODEC_X265_DUMP=DIR``
     ``--preset`` per ``--extra``, optional, replaces the recorded preset); per setting the BD-rate of its
     (bytes, sample PSNR) curve against the recorded options' curve and the CPU seconds relative to theirs
     (docs/benchmarks.md, "A narrower x265 analysis for the long SH streams").
+
+Every ``--extra`` is NAME=VALUE pairs separated by ':'; the leading ':' is optional (it is added).
 
 Example (a stress loop under load):
     for i in 1 2 3; do GSCODEC_X265_DUMP=out/d$i gscodec-shac encode scene.ply out/r$i.gsc \\
@@ -183,6 +185,18 @@ def options(folder: str, extras: list[str]) -> None:
 _QP = re.compile(r"(^|:)qp=(\d+)")
 
 
+def x265_params(text: str) -> str:
+    """An ``--extra`` value as the suffix appended to the recorded ``x265-params``: ``rd=2:ctu=32`` or
+    ``:rd=2:ctu=32`` -> ``:rd=2:ctu=32``. Without the leading colon the first parameter used to run into
+    the recorded last one (``frame-threads=1rd=2``), which x265 reads as ``frame-threads=1`` and says
+    nothing: the setting was silently not applied."""
+    items = [item.strip() for item in text.strip().strip(":").split(":")] if text.strip(": ") else []
+    bad = [item for item in items if not re.fullmatch(r"[A-Za-z][A-Za-z0-9-]*=\S+", item)]
+    if bad:
+        raise argparse.ArgumentTypeError(f"x265 parameters are NAME=VALUE separated by ':', got {bad[0]!r} in {text!r}")
+    return "".join(f":{item}" for item in items)
+
+
 def curve(folder: str, piece: int, offsets: list[int], extras: list[str], presets: list[str] | None = None) -> dict:
     """The ``piece``-th largest recorded piece at its QP plus ``offsets``, under the recorded options and each
     of ``extras`` (with ``presets[i]`` replacing the preset when given): per setting its BD-rate over the
@@ -272,22 +286,22 @@ def main() -> None:
     rep_parser = commands.add_parser("repeat")
     rep_parser.add_argument("folder")
     rep_parser.add_argument("--times", type=int, default=10)
-    rep_parser.add_argument("--extra", default="", help="x265 parameters appended, e.g. :wpp=0")
+    rep_parser.add_argument("--extra", type=x265_params, default="", help="x265 parameters appended, e.g. :wpp=0")
     rep_parser.add_argument("--bytes", default="0:4611686018427387904", metavar="MIN:MAX",
                             help="only the pieces whose recorded stream has MIN-MAX bytes")
     mix_parser = commands.add_parser("shuffle")
     mix_parser.add_argument("folder")
     mix_parser.add_argument("--rounds", type=int, default=5)
     mix_parser.add_argument("--seed", type=int, default=0)
-    mix_parser.add_argument("--extra", default="", help="x265 parameters appended, e.g. :wpp=0")
+    mix_parser.add_argument("--extra", type=x265_params, default="", help="x265 parameters appended, e.g. :wpp=0")
     opt_parser = commands.add_parser("options")
     opt_parser.add_argument("folder")
-    opt_parser.add_argument("--extra", action="append", default=[], help="x265 parameters appended (repeatable)")
+    opt_parser.add_argument("--extra", type=x265_params, action="append", default=[], help="x265 parameters appended (repeatable)")
     curve_parser = commands.add_parser("curve")
     curve_parser.add_argument("folder")
     curve_parser.add_argument("--piece", type=int, default=0, help="the K-th largest recorded piece (0: the largest)")
     curve_parser.add_argument("--offsets", default="-2,0,2", help="QP offsets from the recorded QP")
-    curve_parser.add_argument("--extra", action="append", default=[], help="x265 parameters appended (repeatable)")
+    curve_parser.add_argument("--extra", type=x265_params, action="append", default=[], help="x265 parameters appended (repeatable)")
     curve_parser.add_argument("--preset", action="append", default=[],
                               help="x265 preset for the --extra of the same position ('' keeps the recorded one)")
     args = parser.parse_args()

@@ -60,3 +60,35 @@ def test_curve_refuses_qps_outside_x265s_range_and_a_missing_piece(tmp_path, mon
         script.curve(str(tmp_path), 0, [-2, 0], [])
     with pytest.raises(SystemExit, match="--piece must be 0-0"):
         script.curve(str(tmp_path), 3, [0], [])
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("rd=2", ":rd=2"), (":rd=2", ":rd=2"), ("rd=2:ctu=32", ":rd=2:ctu=32"), (":me=dia:rect=0", ":me=dia:rect=0"),
+    ("zones=0,0,q=27", ":zones=0,0,q=27"), ("", ""),
+])
+def test_extra_parameters_always_start_with_a_colon(text, expected):
+    """Without it the first parameter ran into the recorded last one (``frame-threads=1rd=2``), which
+    x265 took for ``frame-threads=1`` without a word: the setting was never applied."""
+    assert load_script("x265_repeat").x265_params(text) == expected
+
+
+@pytest.mark.parametrize("text", ["rd", "rd=2:ctu", "rd 2", ":=2"])
+def test_extra_parameters_without_name_and_value_are_refused(text):
+    import argparse
+
+    with pytest.raises(argparse.ArgumentTypeError, match="NAME=VALUE"):
+        load_script("x265_repeat").x265_params(text)
+
+
+def test_extra_without_a_colon_changes_the_stream_as_with_one(tmp_path, monkeypatch, capsys):
+    """On the command line ``--extra max-tu-size=4`` is applied (it costs bytes on smooth planes)."""
+    import sys
+
+    _recorded_frames_stream(tmp_path, monkeypatch, seed=2)
+    script = load_script("x265_repeat")
+    monkeypatch.setattr(sys, "argv", ["x265_repeat.py", "options", str(tmp_path), "--extra", "max-tu-size=4"])
+    script.main()
+    rows = [line for line in capsys.readouterr().out.splitlines() if " B " in line]
+    sizes = [int(row.split()[1].replace(",", "")) for row in rows]
+    assert [row.split()[0] for row in rows] == ["(recorded)", ":max-tu-size=4"]
+    assert sizes[1] > sizes[0]
