@@ -38,6 +38,7 @@ from gscodec_shac.codec import sh_degree as degrees
 from gscodec_shac.codec.allocation import waterfill_qps
 from gscodec_shac.codec.attributes import ATTRIBUTES, SH_FEATURES_TRANSFORM
 from gscodec_shac.codec.container import Bitstream
+from gscodec_shac.codec.effort import scene_analysis
 from gscodec_shac.codec.grid.base import GridCodec, get_codec
 from gscodec_shac.codec.importance import gaussian_importance, importance_views, keep_count, most_important
 from gscodec_shac.codec.layout import (
@@ -209,6 +210,7 @@ class Encoder:
         self._measured: tuple[GaussianCloud, np.ndarray] | None = None
         self._dc_only: np.ndarray | None = None
         self._dc_only_shape: tuple[int, int] = (0, 0)
+        self._analysis = "preset"  # x265's analysis for lossy hevc attributes without their own (set per encode)
 
     # ---------------------------------------------------------------- main
     def grid_order(self, cloud: GaussianCloud) -> GridOrder:
@@ -234,6 +236,7 @@ class Encoder:
         if release_input:
             cloud = cloud.take()
         self._codecs, self._jobs, self.timings_ = {}, [], {}
+        self._analysis = scene_analysis(n_input)
         # With a shared cache (the rate controller's trials), the placement, the SH features and
         # the position set of equal pruning and sorting settings are computed once.
         self._work_key = _work_key(rp) if self._chunk_cache is not None and grid is None else None
@@ -532,7 +535,10 @@ class Encoder:
         self, chunk: str, attribute: str, planes: np.ndarray, bits: int,
         qp: int | None, spec: AttributeSpec, channels: tuple[int, int], part: str,
     ) -> None:
-        codec, index = self._codec(spec.codec, spec.options)
+        options = spec.options
+        if spec.codec == "hevc" and qp is not None and "analysis" not in options and self._analysis != "preset":
+            options = {**options, "analysis": self._analysis}  # a small scene's full analysis (:mod:`.effort`)
+        codec, index = self._codec(spec.codec, options)
         meta = {"attribute": attribute, "channels": list(channels), "part": part,
                 "shape": list(planes.shape), "bits": bits, "qp": qp, "codec": index}
         job = _Job(chunk, meta)

@@ -43,6 +43,7 @@ def encode_file(
     sort: str | None = None,
     seed: int | None = None,
     preset: str | None = None,
+    analysis: str | None = None,
     progress: bool = False,
     choose_sh: Callable[[Any], tuple[str, dict[str, Any]]] | None = None,
     network_bits: int | None = None,
@@ -59,7 +60,8 @@ def encode_file(
 
     ``sh`` picks the SH stage (default: the rate point's), ``stage_params`` its
     parameters (e.g. ``energy_retention=0.99``); ``preset`` sets the lossy
-    codecs' speed preset (x265's ``preset`` option). ``choose_sh``, when given, picks
+    codecs' speed preset (x265's ``preset`` option), ``analysis`` x265's analysis (``"full"`` or
+    ``"preset"``; default: by the scene's size, :mod:`.effort`). ``choose_sh``, when given, picks
     ``(stage, params)`` from the model read (the default encode, :mod:`.defaults`);
     ``network_bits`` how a dynamic model's network is stored (16: float16, 2..8: quantised,
     the output heads at 8 bits below 8; default: the bits of the grid a network trained with
@@ -97,7 +99,7 @@ def encode_file(
         views = importance_views(cloud, load_cameras(cameras) if cameras is not None else None, up=up)
     encoder = Encoder(point, sh_stage=sh, sort=sort, seed=seed,
                       sh_params={k: v for k, v in stage_params.items() if v is not None},
-                      codec_options={"preset": preset} if preset else None, progress=progress, views=views)
+                      codec_options=_codec_options(preset, analysis), progress=progress, views=views)
     n_input, sh_degree = cloud.num_gaussians, cloud.sh_degree
     means = cloud.means if dynamic is not None else None  # the network's rounding is fitted on them
     stream = encoder.encode(cloud, release_input=True)  # the model is freed once read (memory, issue 25)
@@ -141,6 +143,7 @@ def encode_file_to_target(
     up: tuple[float, float, float] = (0.0, 0.0, 1.0),
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
     preset: str | None = None,
+    analysis: str | None = None,
     progress: bool = False,
 ) -> dict[str, Any]:
     """Any model file ``read_model`` reads -> ``.gsc`` at a target (:mod:`.rate_control`): a size (``"2.5MB"``), bits per Gaussian or
@@ -159,7 +162,7 @@ def encode_file_to_target(
     target = target or make_target(cloud.num_gaussians, size=size, bpg=bpg, psnr=psnr)
     views = load_cameras(cameras) if cameras is not None else None
     controller = RateController(cloud, template, views, up=up, background=background, progress=progress,
-                                codec_options={"preset": preset} if preset else None)
+                                codec_options=_codec_options(preset, analysis))
     outcome = controller.encode(target)
     with inputs_protected(in_ply, *([cameras] if cameras is not None else [])):
         written = outcome.stream.write(out_gsc)
@@ -248,3 +251,9 @@ def _check_output_dir(path: str | os.PathLike, source: str | os.PathLike) -> Non
         raise OutputError(f"{path}: the output path is a directory; give a file name")
     if Path(path).exists() and Path(source).exists() and os.path.samefile(path, source):
         raise OutputError(f"{path}: is the input {source}; refusing to write over an input (even with --force)")
+
+
+def _codec_options(preset: str | None, analysis: str | None) -> dict[str, str] | None:
+    """The lossy codecs' options a caller set (x265's preset, its analysis), or None."""
+    options = {key: value for key, value in (("preset", preset), ("analysis", analysis)) if value}
+    return options or None

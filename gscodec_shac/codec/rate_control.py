@@ -63,6 +63,7 @@ from gscodec_shac.codec.allocation import waterfill_qps
 from gscodec_shac.codec.attributes import ATTRIBUTES
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.decoder import Decoder
+from gscodec_shac.codec.effort import with_scene_analysis
 from gscodec_shac.codec.encoder import Encoder, position_set_cache_key
 from gscodec_shac.codec.importance import gaussian_importance, importance_views, keep_count, most_important
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode, set_order
@@ -263,7 +264,9 @@ class RateController:
         max_encodes: int = 6,
         importance_shares: Sequence[float] = IMPORTANCE_SHARES,
     ) -> None:
-        point = load_rate_point(template).with_overrides(codec_options=codec_options)
+        # every encode of the scene, the probes of its subsets too, gets the whole scene's x265 analysis
+        point = with_scene_analysis(load_rate_point(template).with_overrides(codec_options=codec_options),
+                                    cloud.num_gaussians)
         if not point.positions_as_set or point.attributes["sh_features"].allocation != "waterfill":
             raise ValidationError(f"rate control needs a template with set-coded positions and water-filled SH "
                                   f"features (like {TEMPLATE}); {point.name} has not")

@@ -63,6 +63,7 @@ from typing import Callable, Iterator
 import av
 import numpy as np
 
+from gscodec_shac.codec.effort import ANALYSES
 from gscodec_shac.codec.grid import x265_dump, x265_processes
 from gscodec_shac.codec.grid.base import EncodeParts, GridCodec, PlaneSink, join_chunks, register_codec, split_chunks
 from gscodec_shac.errors import BitstreamError, CodecUnavailableError, ValidationError
@@ -83,6 +84,10 @@ LONG_STREAM_PARAMS = ":me=dia:early-skip=1:rd=3:subme=2:ref=3:limit-modes=0:fast
 #: Long frames streams at this QP or finer also go without rectangular partitions (``rect=0``), most of
 #: the CPU saved: BD-rate over the samples +-0.03% at QPs 5-15, +0.17-0.31% at 16-21, 0.3-3% above.
 RECT_OFF_MAX_QP = 21
+#: x265 parameters of the full analysis: RD level 6 (full rate-distortion decisions). On bonsai's and the
+#: chair's streams 2-3.7% smaller at equal sample PSNR, for 1.3-3.5x x265's CPU (docs/benchmarks.md,
+#: "The full x265 analysis for small scenes"); the encoder chooses it for small scenes (:mod:`..effort`).
+FULL_ANALYSIS_PARAMS = ":rd=6"
 
 
 @register_codec
@@ -96,7 +101,9 @@ class HevcCodec(GridCodec):
     ``depth`` (8, 10, 12 or ``None`` = smallest holding the data), ``bframes``
     (``frames`` layout only: B frames between P frames, at fixed places; default 0;
     ``None`` = the preset's count) and ``threads`` (x265
-    worker threads; ``None`` = all cores; the bytes do not depend on it).
+    worker threads; ``None`` = all cores; the bytes do not depend on it) and ``analysis``
+    (``"preset"``, default, or ``"full"``: RD level 6 for every lossy stream, a few percent smaller
+    for 1.3-3.5x the CPU; the decoder does not need it).
     """
 
     name = "hevc"
@@ -109,6 +116,7 @@ class HevcCodec(GridCodec):
         depth: int | None = None,
         bframes: int | None = 0,
         threads: int | None = None,
+        analysis: str = "preset",
     ) -> None:
         if layout not in LAYOUTS:
             raise ValidationError(f"hevc: layout must be one of {', '.join(LAYOUTS)}, got {reprlib.repr(layout)}")
@@ -122,9 +130,13 @@ class HevcCodec(GridCodec):
             raise ValidationError(f"hevc: bframes must be an integer 0-16 or None, got {reprlib.repr(bframes)}")
         if threads is not None and not (isinstance(threads, int) and threads >= 1):
             raise ValidationError(f"hevc: threads must be a positive integer or None, got {reprlib.repr(threads)}")
-        super().__init__(layout=layout, preset=preset, tune=tune, depth=depth, bframes=bframes, threads=threads)
+        if analysis not in ANALYSES:
+            raise ValidationError(f"hevc: analysis must be one of {', '.join(ANALYSES)}, got {reprlib.repr(analysis)}")
+        # the preset's analysis is not recorded: files coded with it keep the codec options of earlier versions
+        full = {"analysis": analysis} if analysis != "preset" else {}
+        super().__init__(layout=layout, preset=preset, tune=tune, depth=depth, bframes=bframes, threads=threads, **full)
         self.layout, self.preset, self.tune = layout, preset, tune
-        self.depth, self.bframes, self.threads = depth, bframes, threads
+        self.depth, self.bframes, self.threads, self.analysis = depth, bframes, threads, analysis
 
     @classmethod
     def check_available(cls) -> None:
@@ -153,15 +165,17 @@ class HevcCodec(GridCodec):
         parts = []
         for first, n_frames, chroma in stream_plan(self.layout, len(grid)):
             if chroma:
-                frames, pix_fmt, gop = [grid[first : first + 3]], _YUV444_FMT[depth], ""
+                frames, pix_fmt, extra = [grid[first : first + 3]], _YUV444_FMT[depth], ""
             else:
-                frames, pix_fmt, gop = list(grid[first : first + n_frames]), _GRAY_FMT[depth], ""
+                frames, pix_fmt, extra = list(grid[first : first + n_frames]), _GRAY_FMT[depth], ""
                 if n_frames > 1:  # the frames layout: one I frame, then inter frames of fixed types
-                    gop = f":keyint={n_frames}:min-keyint={n_frames}:scenecut=0:b-adapt=0:weightp=0"
+                    extra = f":keyint={n_frames}:min-keyint={n_frames}:scenecut=0:b-adapt=0:weightp=0"
                     if n_frames >= LONG_STREAM_MIN_FRAMES:
-                        gop += LONG_STREAM_PARAMS + (":rect=0" if qp is not None and qp <= RECT_OFF_MAX_QP else "")
-                    gop += f":bframes={self.bframes}" if self.bframes is not None else ""
-            parts.append((sum(f.size for f in frames), functools.partial(self._encode_stream, frames, pix_fmt, qp, gop)))
+                        extra += LONG_STREAM_PARAMS + (":rect=0" if qp is not None and qp <= RECT_OFF_MAX_QP else "")
+                    extra += f":bframes={self.bframes}" if self.bframes is not None else ""
+            if self.analysis == "full" and qp is not None:
+                extra += FULL_ANALYSIS_PARAMS
+            parts.append((sum(f.size for f in frames), functools.partial(self._encode_stream, frames, pix_fmt, qp, extra)))
         head = bytes([LAYOUTS.index(self.layout), shift])
         return parts, lambda streams: head + join_chunks(streams)
 
