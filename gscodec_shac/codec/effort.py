@@ -2,9 +2,10 @@
 
 x265's full analysis (RD level 6, :data:`.grid.hevc.FULL_ANALYSIS_PARAMS`) codes bonsai's and the chair's
 attribute streams 2-3.7% smaller at equal sample PSNR, for 1.3-3.5x x265's CPU (docs/benchmarks.md,
-"The full x265 analysis for small scenes"). On a scene of up to :data:`FULL_ANALYSIS_MAX_GAUSSIANS`
-Gaussians that costs a few seconds; on the 1-6M Gaussians of a real capture it would double the encode,
-so those keep the preset's analysis. The choice is by the whole scene, so the rate controller's probes
+"The full x265 analysis for small scenes"). The encode takes 2.2x (bonsai, 75k Gaussians: 3.2 -> 7.2 s)
+to 2.8x (a 150k synthetic scene: 5.9 -> 16.5 s) as long, so only scenes of up to
+:data:`FULL_ANALYSIS_MAX_GAUSSIANS` Gaussians get it; the 1-6M Gaussians of a real capture keep the
+preset's analysis. The choice is by the whole scene, so the rate controller's probes
 (subsets of it) are analysed as its encodes are (:func:`with_scene_analysis`). A rate point or a caller
 that sets the hevc option ``analysis`` itself keeps it.
 """
@@ -21,7 +22,7 @@ if TYPE_CHECKING:
 #: to every lossy stream).
 ANALYSES = ("preset", "full")
 #: Scenes up to this many (input) Gaussians get x265's full analysis.
-FULL_ANALYSIS_MAX_GAUSSIANS = 150_000
+FULL_ANALYSIS_MAX_GAUSSIANS = 100_000
 
 
 def scene_analysis(n_gaussians: int) -> str:
