@@ -99,3 +99,18 @@ def test_the_rate_controllers_probes_take_the_whole_scenes_analysis(small_cloud,
     rows = np.arange(small_cloud.num_gaussians // 4)  # a probe far under the limit
     stream = Encoder(controller._rate_point({"opacity": 20}), "pca").encode(small_cloud.select(rows))
     assert _header_analyses(stream) == {"preset"}
+
+
+def test_the_cli_analysis_flag_overrides_the_scenes_choice(tmp_path, small_cloud):
+    from gscodec_shac.cli import main
+    from gscodec_shac.codec.container import Bitstream
+    from gscodec_shac.io.ply import write_ply
+
+    ply = tmp_path / "small.ply"
+    write_ply(ply, small_cloud)
+    chosen = {}
+    for flag in ([], ["--analysis", "preset"], ["--analysis", "full"]):
+        out = tmp_path / f"out{len(chosen)}.gsc"
+        assert main(["encode", str(ply), str(out), "-r", "shac_ladder:rp4", "-q", *flag]) == 0
+        chosen[" ".join(flag) or "default"] = _header_analyses(Bitstream.read(out))
+    assert chosen == {"default": {"full"}, "--analysis preset": {"preset"}, "--analysis full": {"full"}}
