@@ -12,10 +12,11 @@ that sets the hevc option ``analysis`` itself keeps it.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from gscodec_shac.codec.rate_points import RatePoint
+    from gscodec_shac.codec.rate_points import AttributeSpec, RatePoint
 
 #: The hevc codec's ``analysis`` option: the preset's analysis (the long frames streams narrowed, see
 #: :data:`.grid.hevc.LONG_STREAM_PARAMS`), or the full one (:data:`.grid.hevc.FULL_ANALYSIS_PARAMS` added
@@ -30,15 +31,16 @@ def scene_analysis(n_gaussians: int) -> str:
     return "full" if n_gaussians <= FULL_ANALYSIS_MAX_GAUSSIANS else "preset"
 
 
+def with_analysis(spec: AttributeSpec, analysis: str) -> AttributeSpec:
+    """``spec`` with x265's ``analysis`` when it is a lossy hevc attribute that sets none itself, else ``spec``."""
+    if spec.codec != "hevc" or spec.lossless or "analysis" in spec.options:
+        return spec
+    return dataclasses.replace(spec, options={**spec.options, "analysis": analysis})
+
+
 def with_scene_analysis(point: RatePoint, n_gaussians: int) -> RatePoint:
     """``point`` with the scene's ``analysis`` set on every lossy hevc attribute that has none, so that
     encodes of parts of the scene (the rate controller's probes) are analysed as the whole scene is."""
-    import dataclasses
-
     analysis = scene_analysis(n_gaussians)
-    attributes = {
-        name: dataclasses.replace(spec, options={**spec.options, "analysis": analysis})
-        if spec.codec == "hevc" and not spec.lossless and "analysis" not in spec.options else spec
-        for name, spec in point.attributes.items()
-    }
+    attributes = {name: with_analysis(spec, analysis) for name, spec in point.attributes.items()}
     return dataclasses.replace(point, attributes=attributes)

@@ -38,7 +38,7 @@ from gscodec_shac.codec import sh_degree as degrees
 from gscodec_shac.codec.allocation import waterfill_qps
 from gscodec_shac.codec.attributes import ATTRIBUTES, SH_FEATURES_TRANSFORM
 from gscodec_shac.codec.container import Bitstream
-from gscodec_shac.codec.effort import scene_analysis
+from gscodec_shac.codec.effort import scene_analysis, with_analysis
 from gscodec_shac.codec.grid.base import GridCodec, get_codec
 from gscodec_shac.codec.importance import gaussian_importance, importance_views, keep_count, most_important
 from gscodec_shac.codec.layout import (
@@ -535,10 +535,9 @@ class Encoder:
         self, chunk: str, attribute: str, planes: np.ndarray, bits: int,
         qp: int | None, spec: AttributeSpec, channels: tuple[int, int], part: str,
     ) -> None:
-        options = spec.options
-        if spec.codec == "hevc" and qp is not None and "analysis" not in options and self._analysis != "preset":
-            options = {**options, "analysis": self._analysis}  # a small scene's full analysis (:mod:`.effort`)
-        codec, index = self._codec(spec.codec, options)
+        if self._analysis != "preset":  # a small scene's full analysis (:mod:`.effort`); the preset's adds nothing
+            spec = with_analysis(spec, self._analysis)
+        codec, index = self._codec(spec.codec, spec.options)
         meta = {"attribute": attribute, "channels": list(channels), "part": part,
                 "shape": list(planes.shape), "bits": bits, "qp": qp, "codec": index}
         job = _Job(chunk, meta)
