@@ -389,6 +389,7 @@ def test_a_size_target_codes_the_probe_at_its_first_plan_and_plans_again(small_s
     plan = controller._first_plan(target)
     fitted = {name: model.bytes.copy() for name, model in controller.models_.items()}
     sh_points = {feature: dict(points) for feature, points in controller._sh_points.items()}
+    probe_rates = {name: dict(points) for name, points in controller._probe_rates.items()}
     try:
         assert controller._probe_at(plan)
         probe = small_scene.cloud.select(controller._probe_rows)  # coded at the plan's QPs, here too
@@ -401,13 +402,17 @@ def test_a_size_target_codes_the_probe_at_its_first_plan_and_plans_again(small_s
             assert model.bytes[at] == pytest.approx(sizes[name] * n / probe.num_gaussians, rel=1e-9)
             for qp in PROBE_QPS:  # the probe's own points stay
                 assert model.bytes[qp] == pytest.approx(fitted[name][qp], rel=1e-9)
-        assert controller._sh_points == sh_points  # the SH features' points are the fit's again
+        assert controller._sh_points != sh_points  # the SH features' points at the plan's QPs joined them
         replanned = controller._first_plan(target)
     finally:
         for name, data in fitted.items():
             controller.models_[name] = dataclasses.replace(controller.models_[name], bytes=data)
+        controller._sh_points = {feature: dict(points) for feature, points in sh_points.items()}
+        controller._probe_rates = {name: dict(points) for name, points in probe_rates.items()}
     outcome = controller.encode(target)
     assert all(np.array_equal(controller.models_[name].bytes, fitted[name]) for name in fitted)
+    assert controller._sh_points == sh_points and controller._probe_rates == probe_rates  # the fit's again
+    assert controller._prune_factors == {}
     assert outcome.trials[0]["first_plan_bytes"] == pytest.approx(plan.predicted_bytes)
     assert outcome.trials[0]["predicted_bytes"] == pytest.approx(replanned.predicted_bytes)
     assert "plan_probe" in outcome.seconds
@@ -421,3 +426,107 @@ def test_no_probe_at_the_plan_when_the_probe_is_the_whole_cloud(controller):
     assert controller._probe_rows.size == controller.cloud.num_gaussians
     assert not controller._probe_at(controller._first_plan(target))
     assert "plan_probe" not in controller.encode(target).seconds
+
+
+# ------------------------------------------------- what a kept Gaussian costs
+@pytest.fixture()
+def pruning_controller(small_scene, monkeypatch):
+    """A controller whose probe is smaller than the cloud and which has three pruning choices (by importance:
+    the synthetic scene's opacities are all above the thresholds)."""
+    from gscodec_shac.codec import rate_control
+
+    monkeypatch.setattr(rate_control, "PROBE_MIN", 500)
+    controller = RateController(small_scene.cloud, views=small_scene.cameras, importance_shares=(0.8, 0.6, 0.4),
+                                workers=2).fit()
+    assert len(controller.prune_) > 2 and controller._probe_rows.size < small_scene.cloud.num_gaussians
+    return controller
+
+
+def test_the_probe_pruned_as_the_plan_prunes_measures_what_a_kept_gaussian_costs(pruning_controller):
+    """Version 14: each QP attribute's bytes per Gaussian of the probe's kept Gaussians, against the whole
+    probe's per Gaussian at the same QPs, both coded for real; the plan's bytes scale by it."""
+    controller = pruning_controller
+    target = make_target(controller.cloud.num_gaussians, bpg=120)
+    plan = controller._predict({**controller._first_plan(target).settings, "prune": 2})
+    rows = controller._probe_rows
+    kept = rows[controller._prune_masks[2][rows]]
+    assert 0 < kept.size < rows.size
+    names = list(controller._probe_rates)
+    point = controller._rate_point({name: plan.settings[name] for name in names} | {"positions": 16})
+    whole, pruned = (Encoder(point, sh_stage=controller.stage_, fit_stage=False).encode(
+        controller.cloud.select(r)).attribute_sizes() for r in (rows, kept))
+    before = {name: controller._attribute_bytes(plan.settings, name) / controller._bytes(name, plan.settings[name])
+              for name in names}
+    assert controller._probe_at(plan)
+    factors = controller._prune_factors[2]
+    for name in names:
+        expected = (pruned[name] / kept.size) / (whole[name] / rows.size)
+        assert factors[name] == pytest.approx(expected, rel=1e-9)
+        share = controller._attribute_bytes(plan.settings, name) / controller._bytes(name, plan.settings[name])
+        assert share == pytest.approx(before[name] * factors[name], rel=1e-9)
+    assert controller._predict({**plan.settings, "prune": 0}).predicted_bytes > 0  # no pruning: no factor
+    assert all(controller._prune_factor(0, name) == 1.0 for name in names)
+
+
+def test_an_unmeasured_pruning_choice_interpolates_in_the_share_kept(pruning_controller):
+    controller = pruning_controller
+    controller.prune_ = [controller.prune_[0]] + [(settings, kept, mse) for (settings, _, mse), kept
+                                                  in zip(controller.prune_[1:4], (0.9, 0.6, 0.3))]
+    assert controller._prune_factor(1, "sh") == 1.0  # nothing measured yet
+    controller._prune_factors = {2: {"sh": 1.4, "scale": 1.1}}
+    assert controller._prune_factor(2, "sh") == 1.4
+    assert controller._prune_factor(1, "sh") == pytest.approx(1.0 + 0.4 * 0.1 / 0.4)  # between 1 at 1.0 and 1.4 at 0.6
+    assert controller._prune_factor(3, "sh") == pytest.approx(1.4)  # past the last measured: constant
+    assert controller._prune_factor(3, "scale") == pytest.approx(1.1)
+    assert controller._prune_factor(2, "positions") == 1.0  # set coding has its own model of the gaps
+
+
+def test_an_encode_of_a_pruned_plan_is_learnt_through_the_same_factor(pruning_controller):
+    """The bytes an encode measured come back exactly as the prediction of the same settings: :meth:`_learn`
+    divides by the factor :meth:`_predict` multiplies by."""
+    controller = pruning_controller
+    target = make_target(controller.cloud.num_gaussians, bpg=120)
+    plan = controller._predict({**controller._first_plan(target).settings, "prune": 2})
+    controller._exact = {}
+    controller._probe_at(plan)
+    assert controller._prune_factors[2]["sh"] != 1.0
+    plan = controller._predict(plan.settings)
+    stream = controller._encode(plan, target)
+    controller._learn(plan, stream)
+    assert controller._predict(plan.settings).predicted_bytes == pytest.approx(stream.total_bytes(), rel=1e-9)
+
+
+def test_a_size_target_measures_the_pruning_it_plans_before_its_first_encode(pruning_controller, monkeypatch):
+    """The size target's plans are probed until the plan's pruning is measured (at most PLAN_PROBES times);
+    the factors belong to the target: the next starts without them."""
+    from gscodec_shac.codec import rate_control
+
+    controller = pruning_controller
+    probed: list[int] = []  # the pruning choice of each plan probed
+    measured: list[set[int]] = []  # the choices measured when the first encode starts
+    probe_at, encode = controller._probe_at, controller._encode
+
+    def recording_probe_at(plan):
+        probed.append(plan.settings["prune"])
+        return probe_at(plan)
+
+    def recording_encode(plan, target):
+        if not encoded:  # the first encode of the target
+            measured.append(set(controller._prune_factors))
+        encoded.append(plan.settings["prune"])
+        return encode(plan, target)
+
+    monkeypatch.setattr(controller, "_probe_at", recording_probe_at)
+    monkeypatch.setattr(controller, "_encode", recording_encode)
+    pruned_somewhere = False
+    for bpg in (40, 60, 120):
+        probed.clear(), measured.clear()
+        encoded: list[int] = []
+        controller.encode(make_target(controller.cloud.num_gaussians, bpg=bpg))
+        assert 1 <= len(probed) <= rate_control.PLAN_PROBES
+        assert measured[0] == {p for p in probed if p}  # every pruning probed was measured, no other
+        if len(probed) < rate_control.PLAN_PROBES:
+            assert encoded[0] in {0, *probed}  # the plan encoded prunes as measured
+        pruned_somewhere |= any(probed)
+        assert controller._prune_factors == {}
+    assert pruned_somewhere

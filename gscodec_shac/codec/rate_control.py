@@ -29,7 +29,9 @@ each attribute on its own:
 * **pruning**: the rendered MSE of the cloud without its Gaussians below each opacity
   threshold, or without all but its most important ones (:mod:`.importance`, at each share of
   :data:`IMPORTANCE_SHARES`), by exact renders; pruning keeps a share ``f`` of the Gaussians and scales every
-  attribute's bytes by ``f`` (positions: their gaps grow, ``+log2(1/f)`` bits each).
+  attribute's bytes by ``f`` (positions: their gaps grow, ``+log2(1/f)`` bits each) times what a
+  Gaussian that stays costs against an average one (version 14: a size target measures it on the
+  probe, :meth:`RateController._probe_at`; the Gaussians pruned are cheaper than the rest).
 
 The predicted rendered error is ``D = sum_a k_a e_a(x_a)`` (PSNR against the uncompressed
 model, images in [0, 1]). A Lagrangian search (per attribute ``min R_a + lambda D_a``)
@@ -84,8 +86,10 @@ TEMPLATE = "shac_auto:template"
 #: PSNR target's single steps with the start's bytes as the corrected models predict them now; 11 weighs
 #: the probe's rendered error by how visible its Gaussians are (:meth:`RateController._probe_visibility`);
 #: 12 rescales a PSNR target's models by the renders of its first encode (:meth:`RateController._rescale_models`);
-#: 13 codes the probe at a size target's first plan and plans again (:meth:`RateController._probe_at`).
-VERSION = 13
+#: 13 codes the probe at a size target's first plan and plans again (:meth:`RateController._probe_at`);
+#: 14 also codes the probe pruned as that plan prunes and scales the pruned plans' bytes by what a kept
+#: Gaussian costs there (:meth:`RateController._prune_factor`), up to :data:`PLAN_PROBES` times.
+VERSION = 14
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
 #: QPs at which the probe is encoded; the models interpolate between them (and extrapolate).
@@ -96,6 +100,11 @@ POSITION_BITS = tuple(range(9, 17))
 PRUNE_THRESHOLDS = (0.0, 0.005, 0.01, 0.02, 0.05)
 #: Candidate shares of the Gaussians kept by render-based importance (rate-point ``prune.keep_share``).
 IMPORTANCE_SHARES = (0.8, 0.6, 0.45, 0.3)
+#: A size target codes the probe at its plan (and pruned as the plan prunes) and plans again at most
+#: this many times, the second time only when the new plan prunes in a way not yet measured (version 14).
+PLAN_PROBES = 2
+#: Bounds of the measured cost of a kept Gaussian against an average one (:meth:`RateController._prune_factor`).
+PRUNE_FACTOR_BOUNDS = (0.5, 3.0)
 #: A probe holds this many Gaussians (all of a smaller cloud), whatever the cloud's size (up to
 #: version 5: 1/16 of a cloud above 320,000 Gaussians), ...
 PROBE_MIN = 20_000
@@ -290,6 +299,10 @@ class RateController:
         self.models_: dict[str, AttributeModel] = {}
         #: (rate-point prune settings, share of Gaussians kept, rendered MSE of pruning) per candidate
         self.prune_: list[tuple[dict[str, float], float, float]] = [(_prune(), 1.0, 0.0)]
+        self._prune_masks: list[np.ndarray | None] = [None]  # the Gaussians each pruning choice keeps
+        #: per pruning choice measured on the probe: each attribute's bytes per kept Gaussian against
+        #: the unpruned probe's per Gaussian (version 14; one size target's, like :attr:`_exact`)
+        self._prune_factors: dict[int, dict[str, float]] = {}
         #: the DC-only energy bars the controller chooses between (:mod:`.rate_sh_degree`), bar 0 first
         self.dc_only_: list[DcOnlyChoice] = [DcOnlyChoice(0.0)]
         self.overhead_: float = 0.0
@@ -362,15 +375,13 @@ class RateController:
         self.overhead_ = overhead
         return self
 
-    def _rate_curve(self, name: str, grid: np.ndarray, extra: float | None = None, qp: int | None = None) -> np.ndarray:
-        """Bytes of QP attribute ``name`` at each QP of ``grid`` from the probe's encodes, with ``extra`` bytes at
-        ``qp`` as one more point; the water-filled SH features' from :attr:`_sh_points` (:meth:`_sh_rates`),
-        where a caller records a further encode's points per feature instead (``extra`` is not used)."""
+    def _rate_curve(self, name: str, grid: np.ndarray) -> np.ndarray:
+        """Bytes of QP attribute ``name`` at each QP of ``grid`` from the probe's encodes (:attr:`_probe_rates`,
+        with a size target's encodes at its plans, :meth:`_probe_at`); the water-filled SH features' from
+        :attr:`_sh_points` (:meth:`_sh_rates`)."""
         if name == "sh" and self._waterfilled:
             return self._sh_rates(grid, self._sh_ranges)
-        points = dict(self._probe_rates[name])
-        if extra is not None:
-            points[int(qp)] = extra
+        points = self._probe_rates[name]
         qps = sorted(points)
         return _interpolate_log(qps, np.array([points[q] for q in qps]), grid)
 
@@ -442,6 +453,7 @@ class RateController:
         self.prune_ = [(_prune(), 1.0, 0.0)] + [
             (settings, int(np.count_nonzero(keep)) / n, float(np.mean(per_view[i])))
             for i, (settings, keep) in enumerate(candidates)]
+        self._prune_masks = [None] + [keep for _, keep in candidates]
         self.rendered_mse_ = {name: float(np.mean(per_view[name])) for name in recolours}
         return self._sensitivities(errors, self.rendered_mse_, bar)
 
@@ -709,8 +721,9 @@ class RateController:
             position_bytes = np.array([self._position_bytes(int(b), index) for b in model.choices])
             for dc in range(len(self.dc_only_)):
                 models = self._dc_models(dc)
+                weights = {name: kept * self._prune_factor(index, name) for name in models}
                 for lam in np.geomspace(1e-3, 1e15, 400):
-                    settings = {name: int(m.choices[m.best(lam / kept)]) for name, m in models.items()
+                    settings = {name: int(m.choices[m.best(lam / weights[name])]) for name, m in models.items()
                                 if name != "positions"}
                     settings["positions"] = int(model.choices[np.argmin(position_bytes + lam * model.mse)])
                     settings["prune"] = index
@@ -737,7 +750,30 @@ class RateController:
         prune = settings.get("prune", 0)
         if name == "positions":
             return self._position_bytes(settings["positions"], prune)
-        return self.prune_[prune][1] * self._dc_factor(settings, name) * self._bytes(name, settings[name])
+        return self._kept_factor(settings, name) * self._bytes(name, settings[name])
+
+    def _kept_factor(self, settings: dict[str, int], name: str) -> float:
+        """What the pruning and DC-only bar of ``settings`` make of QP attribute ``name``'s unpruned bytes:
+        the share kept times a kept Gaussian's cost (:meth:`_prune_factor`) times the DC-only factor."""
+        prune = settings.get("prune", 0)
+        return self.prune_[prune][1] * self._prune_factor(prune, name) * self._dc_factor(settings, name)
+
+    def _prune_factor(self, prune: int, name: str) -> float:
+        """Bytes per kept Gaussian of QP attribute ``name`` under pruning choice ``prune``, against the
+        unpruned cloud's per Gaussian (version 14): measured on the probe (:meth:`_probe_at`), else
+        interpolated in the share kept between no pruning (1) and the choices measured, constant past
+        them; 1 before any is measured.
+
+        The Gaussians pruned are not average ones: on the chair (50k) the 32% below opacity 0.02 are so
+        cheap that a kept Gaussian's SH cost 1.35x an average one (DC 1.31x, rotation 1.18x), a random
+        32% 1.07x; the factor levels off at 1.2-1.5 as more goes (docs/rate_control.md)."""
+        if prune == 0 or name == "positions" or not self._prune_factors:
+            return 1.0
+        if prune in self._prune_factors:
+            return self._prune_factors[prune].get(name, 1.0)
+        measured = sorted((self.prune_[i][1], factors.get(name, 1.0)) for i, factors in self._prune_factors.items())
+        shares = [share for share, _ in measured] + [1.0]
+        return float(np.interp(self.prune_[prune][1], shares, [factor for _, factor in measured] + [1.0]))
 
     def _position_bytes(self, bits: int, prune: int) -> float:
         """Set-coded positions at ``bits`` after pruning: measured, else the unpruned size scaled by the
@@ -772,10 +808,9 @@ class RateController:
         """Remember what each attribute of ``plan``'s encode cost (the positions fix the grid: their
         setting is the same for every later plan of this target)."""
         sizes = _model_sizes(stream)
-        kept = self.prune_[plan.settings.get("prune", 0)][1]
         for name in self.models_:
             if sizes.get(name, 0) > 0:  # kept unpruned-equivalent, without a DC-only bar; positions as measured
-                scale = 1.0 if name == "positions" else 1.0 / (kept * self._dc_factor(plan.settings, name))
+                scale = 1.0 if name == "positions" else 1.0 / self._kept_factor(plan.settings, name)
                 self._exact.setdefault(name, {})[plan.settings[name]] = float(sizes[name]) * scale
         coded = sum(sizes.get(name, 0) for name in self.models_) + sizes.get("sh_dc_only", 0)  # the flags: modelled
         self._exact["overhead"] = {0: float(stream.total_bytes() - coded)}
@@ -812,11 +847,15 @@ class RateController:
         """
         if not self.models_:
             self.fit()
-        fitted = dict(self.models_)  # a PSNR target rescales them for itself (version 12)
+        # a PSNR target rescales the models for itself (version 12), a size target adds rate points (13, 14)
+        fitted = (dict(self.models_), {name: dict(points) for name, points in self._probe_rates.items()},
+                  {feature: dict(points) for feature, points in self._sh_points.items()})
+        self._prune_factors = {}
         try:
             return self._encode_to(target)
         finally:
-            self.models_ = fitted
+            self.models_, self._probe_rates, self._sh_points = fitted
+            self._prune_factors = {}
 
     def _encode_to(self, target: Target) -> Outcome:
         """:meth:`encode` with the models fitted."""
@@ -825,9 +864,13 @@ class RateController:
         self.seconds_.pop("plan_probe", None)  # an earlier target's
         plan: Plan | None = self._first_plan(target)
         first_plan_bytes = plan.predicted_bytes
-        if target.kind == "bytes" and self._probe_at(plan):  # version 13
+        for _ in range(PLAN_PROBES if target.kind == "bytes" else 0):  # versions 13 and 14
+            if not self._probe_at(plan):
+                break
             plan = self._first_plan(target)
             self.seconds_["plan_probe"] = time.perf_counter() - tic
+            if plan.settings.get("prune", 0) in (0, *self._prune_factors):
+                break
         expected = plan.predicted_psnr  # the PSNR the controller expects of the plan it encodes
         tried: set[tuple] = set()
         best: tuple[Bitstream, Plan, float | None] | None = None
@@ -1032,7 +1075,10 @@ class RateController:
     def _probe_at(self, plan: Plan) -> bool:
         """Version 13: encode the probe at ``plan``'s QPs and add what each QP attribute's chunks cost there
         (scaled to the whole cloud; the water-filled SH features' each at its own QP) to its rate curve;
-        False, changing nothing, when the probe is the whole cloud (its encode would be the first trial).
+        version 14: when ``plan`` prunes in a way not yet measured, also encode the probe's Gaussians that
+        pruning keeps at the same QPs, and keep each attribute's bytes per kept Gaussian against the
+        unpruned probe's per Gaussian (:meth:`_prune_factor`). False, changing nothing, when the probe
+        is the whole cloud (its encode would be the first trial).
 
         The probe codes each attribute at QPs 6, 18, 30 and 42 only; between them the curves are
         interpolated, and where a rate falls steeply that is far off. On synthetic 1M the first plan of
@@ -1043,25 +1089,31 @@ class RateController:
         rows = self._probe_rows
         if rows is None or rows.size >= self.cloud.num_gaussians:
             return False
-        probe = self.cloud.select(rows)
-        scale = self.cloud.num_gaussians / probe.num_gaussians
         names = list(self._probe_rates)
         point = self._rate_point({name: plan.settings[name] for name in names} | {"positions": 16})
-        stream = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers).encode(probe)
-        sizes = stream.attribute_sizes()
-        fitted_sh_points = {feature: dict(points) for feature, points in self._sh_points.items()}
-        if "sh" in names and self._waterfilled:
-            self._record_sh_chunks(stream, scale)
-        try:
-            for name in names:
-                coded = _scaled_probe_bytes(sizes, name, scale)
-                model = self.models_[name]
-                self.models_[name] = AttributeModel(name, model.choices,
-                                                    self._rate_curve(name, model.choices, coded, plan.settings[name]),
-                                                    model.mse)
-        finally:
-            self._sh_points = fitted_sh_points
+        sizes = self._probe_sizes(rows, point, record_sh="sh" in names and self._waterfilled)
+        scale = self.cloud.num_gaussians / rows.size
+        prune = plan.settings.get("prune", 0)
+        if prune and prune not in self._prune_factors:
+            kept_rows = rows[self._prune_masks[prune][rows]]
+            if kept_rows.size:
+                pruned = self._probe_sizes(kept_rows, point, record_sh=False)
+                self._prune_factors[prune] = {
+                    name: float(np.clip((pruned.get(name, 0) / kept_rows.size) / max(sizes.get(name, 0) / rows.size, 1e-9),
+                                        *PRUNE_FACTOR_BOUNDS)) for name in names}
+        for name in names:
+            self._probe_rates[name][int(plan.settings[name])] = _scaled_probe_bytes(sizes, name, scale)
+            model = self.models_[name]
+            self.models_[name] = AttributeModel(name, model.choices, self._rate_curve(name, model.choices), model.mse)
         return True
+
+    def _probe_sizes(self, rows: np.ndarray, point: RatePoint, *, record_sh: bool) -> dict[str, int]:
+        """The attribute sizes of the cloud's ``rows`` coded at ``point``; with ``record_sh`` each
+        water-filled SH feature's bytes (scaled to the whole cloud) join its rate points."""
+        stream = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers).encode(self.cloud.select(rows))
+        if record_sh:
+            self._record_sh_chunks(stream, self.cloud.num_gaussians / rows.size)
+        return stream.attribute_sizes()
 
     def _rescale_models(self, plan: Plan, decoded: GaussianCloud) -> int:
         """Rescale each QP attribute's rendered-error model by what the first encode of a PSNR target
