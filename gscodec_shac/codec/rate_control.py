@@ -765,8 +765,9 @@ class RateController:
         them; 1 before any is measured.
 
         The Gaussians pruned are not average ones: on the chair (50k) the 32% below opacity 0.02 are so
-        cheap that a kept Gaussian's SH cost 1.35x an average one (DC 1.31x, rotation 1.18x), a random
-        32% 1.07x; the factor levels off at 1.2-1.5 as more goes (docs/rate_control.md)."""
+        cheap that a kept Gaussian's SH cost 1.35x an average one (DC 1.31x, rotation 1.18x), where
+        removing a random 32% gives 1.07x; the factor levels off at 1.2-1.5 as more goes
+        (docs/rate_control.md, "Controller version 14")."""
         if prune == 0 or name == "positions" or not self._prune_factors:
             return 1.0
         if prune in self._prune_factors:
