@@ -764,10 +764,11 @@ class RateController:
         interpolated in the share kept between no pruning (1) and the choices measured, constant past
         them; 1 before any is measured.
 
-        The Gaussians pruned are not average ones: on the chair (50k) the 32% below opacity 0.02 are so
-        cheap that a kept Gaussian's SH cost 1.35x an average one (DC 1.31x, rotation 1.18x), where
-        removing a random 32% gives 1.07x; the factor levels off at 1.2-1.5 as more goes
-        (docs/rate_control.md, "Controller version 14")."""
+        A pruned cloud's Gaussians each cost more: on the chair (50k), with the 32% below opacity 0.02
+        gone, a kept Gaussian's SH cost 1.35x an average one (DC 1.30x, rotation 1.18x; removing a
+        random 32%: 1.16x, 1.04x, 1.03x). The faint Gaussians are cheap, and a sparser grid codes
+        worse; the factor levels off at 1.2-1.5 (docs/rate_control.md, "Controller version 14";
+        ``scripts/prune_cost.py``)."""
         if prune == 0 or name == "positions" or not self._prune_factors:
             return 1.0
         if prune in self._prune_factors:
