@@ -23,11 +23,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from gscodec_shac.codec.encoder import Encoder  # noqa: E402
-from gscodec_shac.codec.rate_control import QP_ATTRIBUTES, RateController, _model_sizes  # noqa: E402
+from gscodec_shac.codec.rate_control import QP_ATTRIBUTES, RateController, _model_sizes, fitted_stage  # noqa: E402
 from gscodec_shac.gaussians import GaussianCloud  # noqa: E402
 from gscodec_shac.io.cameras import load_cameras  # noqa: E402
 from gscodec_shac.io.models import read_model  # noqa: E402
-from gscodec_shac.shac.base import make_stage  # noqa: E402
 
 #: The QPs every attribute is coded at (the chair's 55 bits/G plan of version 13, after its probe).
 DEFAULT_QPS = "opacity=11,rotation=16,scale=9,sh_dc=16,sh=25"
@@ -55,8 +54,8 @@ def measure(cloud: GaussianCloud, views: list | None, qps: dict[str, int], seed:
     """One row per pruning choice: the share kept, each attribute's factor, and the same for a random
     subset of as many Gaussians (what the grid's sparser sampling alone costs)."""
     controller = RateController(cloud, views=views)
-    stage = make_stage(controller.template.sh_stage, **controller.template.sh_params).fit(cloud.ac_matrix())
-    encoder = Encoder(controller._rate_point({**qps, "positions": 16}), sh_stage=stage, fit_stage=False)
+    encoder = Encoder(controller._rate_point({**qps, "positions": 16}), sh_stage=fitted_stage(controller.template, cloud),
+                      fit_stage=False)
     whole = per_gaussian_bytes(cloud, encoder)
     rng = np.random.default_rng(seed)
     out = []

@@ -26,12 +26,11 @@ def test_each_pruning_choice_gets_the_factor_of_its_kept_gaussians(small_scene, 
     # the factor by hand: the kept rows coded alone against the whole cloud, at the same QPs
     from gscodec_shac.codec.encoder import Encoder
     from gscodec_shac.codec.importance import keep_count, most_important
-    from gscodec_shac.codec.rate_control import RateController
-    from gscodec_shac.shac.base import make_stage
+    from gscodec_shac.codec.rate_control import RateController, fitted_stage
 
     controller = RateController(small_scene.cloud)
-    stage = make_stage(controller.template.sh_stage, **controller.template.sh_params).fit(small_scene.cloud.ac_matrix())
-    encoder = Encoder(controller._rate_point({**qps, "positions": 16}), sh_stage=stage, fit_stage=False)
+    encoder = Encoder(controller._rate_point({**qps, "positions": 16}),
+                      sh_stage=fitted_stage(controller.template, small_scene.cloud), fit_stage=False)
     controller._prune_candidates()
     n = small_scene.cloud.num_gaussians
     kept = most_important(controller.importance_, np.arange(n), keep_count(n, 0.8))

@@ -337,12 +337,10 @@ class RateController:
             if cloud.sh_degree > 0:
                 from threadpoolctl import threadpool_limits
 
-                stage = make_stage(self.template.sh_stage, **self.template.sh_params)
-                ac = cloud.ac_matrix()
                 # one BLAS thread, as in the encoder: the position jobs run beside it (a 1M profile at
                 # load 6-8 spent 12 s in this fit, which takes 0.15 s alone; the same bytes)
                 with threadpool_limits(1, user_api="blas"):
-                    self.stage_ = stage.fit(np.concatenate([cloud.sh_dc, ac], axis=1) if stage.uses_dc else ac)
+                    self.stage_ = fitted_stage(self.template, cloud)
             probes = len(PROBE_QPS)
             attributes = len(QP_ATTRIBUTES) - (0 if self.stage_ is not None else 1)
             renders = 1 + attributes + 1 + len(PRUNE_THRESHOLDS) - 1 + len(self.importance_shares) \
@@ -1151,6 +1149,14 @@ class RateController:
 
 
 # ------------------------------------------------------------------ helpers
+def fitted_stage(point: RatePoint, cloud: GaussianCloud) -> ShStage:
+    """``point``'s SH stage fitted once on the whole ``cloud`` (its DC too where the stage codes it), as
+    every encode of the rate controller uses it."""
+    stage = make_stage(point.sh_stage, **point.sh_params)
+    ac = cloud.ac_matrix()
+    return stage.fit(np.concatenate([cloud.sh_dc, ac], axis=1) if stage.uses_dc else ac)
+
+
 def _scaled_probe_bytes(sizes: dict[str, int], name: str, scale: float) -> float:
     """A probe encode's bytes of attribute ``name`` (``sizes``: its attribute sizes) scaled to the whole
     cloud by ``scale``; the SH stage's side information counts once with the SH features."""
