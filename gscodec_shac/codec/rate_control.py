@@ -88,8 +88,9 @@ TEMPLATE = "shac_auto:template"
 #: 12 rescales a PSNR target's models by the renders of its first encode (:meth:`RateController._rescale_models`);
 #: 13 codes the probe at a size target's first plan and plans again (:meth:`RateController._probe_at`);
 #: 14 also codes the probe pruned as that plan prunes and scales the pruned plans' bytes by what a kept
-#: Gaussian costs there (:meth:`RateController._prune_factor`), up to :data:`PLAN_PROBES` times.
-VERSION = 14
+#: Gaussian costs there (:meth:`RateController._prune_factor`), up to :data:`PLAN_PROBES` times; 15 is version 14
+#: on the template's 12-bit samples (``rate_points/shac_auto.yaml``: at QP 0 the 10-bit rounding was part of the error).
+VERSION = 15
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
 #: QPs at which the probe is encoded; the models interpolate between them (and extrapolate).
