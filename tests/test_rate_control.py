@@ -444,6 +444,35 @@ def test_a_size_target_codes_the_probe_at_its_first_plan_and_plans_again(small_s
     assert "plan_probe" not in quality.seconds and "first_plan_bytes" not in quality.trials[0]
 
 
+
+def test_a_size_target_probes_again_when_its_plan_moves_the_sh_off_the_qps_coded(small_scene, monkeypatch):
+    """Version 16: after a probe at the plan, a plan whose SH base QP the probe has not coded is probed too
+    (at most PLAN_PROBES probes); with probes to spare, the first encode's SH base QP is one the probe coded."""
+    from gscodec_shac.codec import rate_control
+    from gscodec_shac.codec.rate_control import PROBE_QPS
+
+    monkeypatch.setattr(rate_control, "PROBE_MIN", 500)  # a probe smaller than the cloud
+    monkeypatch.setattr(rate_control, "PRUNE_THRESHOLDS", (0.0,))  # no pruning: a second probe is for the SH only
+    controller = RateController(small_scene.cloud, views=small_scene.cameras, importance_shares=(), workers=2).fit()
+    probed: list[int] = []  # the SH base QP of each plan probed
+    encoded: list[int] = []  # ... and of each plan encoded
+    probe_at, encode = controller._probe_at, controller._encode
+    monkeypatch.setattr(controller, "_probe_at", lambda plan: probed.append(plan.settings["sh"]) or probe_at(plan))
+    monkeypatch.setattr(controller, "_encode", lambda plan, target: encoded.append(plan.settings["sh"]) or
+                        encode(plan, target))
+    probed_again = 0
+    for bpg in (70, 90, 120, 160, 220):
+        probed.clear(), encoded.clear()
+        controller.encode(make_target(controller.cloud.num_gaussians, bpg=bpg))
+        assert 1 <= len(probed) <= rate_control.PLAN_PROBES
+        if len(probed) < rate_control.PLAN_PROBES:
+            assert encoded[0] in {*PROBE_QPS, *probed}
+        else:
+            assert probed[1] not in {*PROBE_QPS, probed[0]}  # probed again only for an SH QP not coded
+            probed_again += 1
+    assert probed_again  # the case happens on this scene
+
+
 def test_no_probe_at_the_plan_when_the_probe_is_the_whole_cloud(controller):
     target = make_target(controller.cloud.num_gaussians, bpg=120)
     assert controller._probe_rows.size == controller.cloud.num_gaussians
