@@ -104,9 +104,10 @@ PRUNE_THRESHOLDS = (0.0, 0.005, 0.01, 0.02, 0.05)
 #: Candidate shares of the Gaussians kept by render-based importance (rate-point ``prune.keep_share``).
 IMPORTANCE_SHARES = (0.8, 0.6, 0.45, 0.3)
 #: A size target codes the probe at its plan (and pruned as the plan prunes) and plans again at most
-#: this many times, the second time only when the new plan prunes in a way not yet measured (version 14)
-#: or puts the SH features' base QP where the probe has not coded them (version 16).
-PLAN_PROBES = 2
+#: this many times, again only when the new plan prunes in a way not yet measured (version 14) or puts
+#: the SH features' base QP where the probe has not coded them (version 16; 2 probes then let the chair's
+#: 40 and 55 bits/G plans end on an unmeasured pruning: -1.0 and -0.7 dB).
+PLAN_PROBES = 3
 #: Bounds of the measured cost of a kept Gaussian against an average one (:meth:`RateController._prune_factor`).
 PRUNE_FACTOR_BOUNDS = (0.5, 3.0)
 #: A probe holds this many Gaussians (all of a smaller cloud), whatever the cloud's size (up to
