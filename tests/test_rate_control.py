@@ -98,6 +98,31 @@ def test_template_codes_at_12_bits_which_qp_0_decodes_closer_than_10(small_cloud
         assert errors[12][name] < 0.95 * errors[10][name], name
     assert sizes[12] < 1.1 * sizes[10]
 
+
+def test_the_hull_is_the_per_multiplier_search_done_at_once(controller):
+    """The hull takes every attribute's choice for all multipliers at once and shares each attribute's
+    bytes and MSE between its plans: the same plans, bytes and MSE as one search per multiplier."""
+    lams = np.geomspace(1e-3, 1e15, 400)
+    for model in controller.models_.values():
+        assert model.best_choices(lams).tolist() == [int(model.choices[model.best(lam)]) for lam in lams]
+    reference: dict[tuple, object] = {}
+    positions = controller.models_["positions"]
+    for index, (_, kept, _) in enumerate(controller.prune_):
+        position_bytes = np.array([controller._position_bytes(int(b), index) for b in positions.choices])
+        for dc in range(len(controller.dc_only_)):
+            models = controller._dc_models(dc)
+            for lam in lams:
+                settings = {name: int(m.choices[m.best(lam / (kept * controller._prune_factor(index, name)))])
+                            for name, m in models.items() if name != "positions"}
+                settings |= {"positions": int(positions.choices[np.argmin(position_bytes + lam * positions.mse)]),
+                             "prune": index, "dc_only": dc}
+                reference.setdefault(tuple(sorted(settings.items())), controller._predict(settings))
+    hull = controller._hull()
+    assert [(p.settings, p.predicted_bytes, p.predicted_mse) for p in hull] == \
+        [(p.settings, p.predicted_bytes, p.predicted_mse) for p in reference.values()]
+    assert hull[0].rate_point == controller._rate_point(hull[0].settings)  # built when asked for
+
+
 # ------------------------------------------------------------ controller
 @pytest.mark.parametrize("bits_per_gaussian", [160, 320])
 def test_size_target_is_met_from_below_within_tolerance(controller, small_cloud, bits_per_gaussian):

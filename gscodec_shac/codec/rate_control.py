@@ -54,7 +54,7 @@ import math
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -203,15 +203,27 @@ class AttributeModel:
         """Index of the choice minimising ``bytes + lam * mse``."""
         return int(np.argmin(self.bytes + lam * self.mse))
 
+    def best_choices(self, lams: np.ndarray) -> np.ndarray:
+        """The choice minimising ``bytes + lam * mse`` for each of ``lams`` (:meth:`best`'s, all at once)."""
+        return self.choices[np.argmin(self.bytes[:, None] + lams[None, :] * self.mse[:, None], axis=0)]
+
 
 @dataclass
 class Plan:
-    """The chosen settings, what the models predict for them and the rate point that codes them."""
+    """The chosen settings, what the models predict for them and the rate point that codes them
+    (built from the settings when first asked for: a hull holds thousands of plans, one is coded)."""
 
     settings: dict[str, int]
     predicted_bytes: float
     predicted_mse: float
-    rate_point: RatePoint
+    point_of: Callable[[dict[str, int]], RatePoint] = field(repr=False, compare=False)
+    _point: RatePoint | None = field(default=None, init=False, repr=False, compare=False)
+
+    @property
+    def rate_point(self) -> RatePoint:
+        if self._point is None:
+            self._point = self.point_of(self.settings)
+        return self._point
 
     @property
     def predicted_psnr(self) -> float:
@@ -719,33 +731,52 @@ class RateController:
         """Plans along the lower convex hull of (bytes, rendered MSE): one per Lagrange multiplier,
         pruning choice and DC-only bar (pruning scales every attribute's bytes by the share kept)."""
         plans: dict[tuple, Plan] = {}
+        memo: dict[tuple, float] = {}  # the attributes' bytes and MSE per setting, shared by the hull's plans
         model = self.models_["positions"]
+        lams = np.geomspace(1e-3, 1e15, 400)
         for index, (_, kept, _) in enumerate(self.prune_):
             position_bytes = np.array([self._position_bytes(int(b), index) for b in model.choices])
+            positions = model.choices[np.argmin(position_bytes[:, None] + lams[None, :] * model.mse[:, None], axis=0)]
             for dc in range(len(self.dc_only_)):
                 models = self._dc_models(dc)
-                weights = {name: kept * self._prune_factor(index, name) for name in models}
-                for lam in np.geomspace(1e-3, 1e15, 400):
-                    settings = {name: int(m.choices[m.best(lam / weights[name])]) for name, m in models.items()
-                                if name != "positions"}
-                    settings["positions"] = int(model.choices[np.argmin(position_bytes + lam * model.mse)])
+                # each attribute's choice at every multiplier at once (one per multiplier, as :meth:`AttributeModel.best`)
+                chosen = {name: m.best_choices(lams / (kept * self._prune_factor(index, name)))
+                          for name, m in models.items() if name != "positions"}
+                for i in range(lams.size):
+                    settings = {name: int(choices[i]) for name, choices in chosen.items()}
+                    settings["positions"] = int(positions[i])
                     settings["prune"] = index
                     settings["dc_only"] = dc
                     key = tuple(sorted(settings.items()))
                     if key not in plans:
-                        plans[key] = self._predict(settings)
+                        plans[key] = self._predict(settings, memo)
         return list(plans.values())
 
-    def _predict(self, settings: dict[str, int]) -> Plan:
-        """Bytes and rendered MSE the models predict for ``settings``, corrected by the encodes so far."""
+    def _predict(self, settings: dict[str, int], memo: dict[tuple, float] | None = None) -> Plan:
+        """Bytes and rendered MSE the models predict for ``settings``, corrected by the encodes so far
+        (``memo``: each attribute's bytes and MSE per setting, kept across the plans of one hull)."""
         prune = settings.get("prune", 0)
         _, kept, prune_mse = self.prune_[prune]
-        dc = self.dc_only_[settings.get("dc_only", 0)]
+        dc_choice = settings.get("dc_only", 0)
+        dc = self.dc_only_[dc_choice]
+        memo = {} if memo is None else memo
+
+        def attribute_bytes(name: str) -> float:
+            key = (name, settings[name], prune, dc_choice)
+            if key not in memo:
+                memo[key] = self._attribute_bytes(settings, name)
+            return memo[key]
+
+        def attribute_mse(name: str, model: AttributeModel) -> float:
+            key = (name, settings[name])
+            if key not in memo:
+                memo[key] = model.mse[np.searchsorted(model.choices, settings[name])]
+            return memo[key]
+
         size = self._overhead_bytes() + self._position_bytes(settings["positions"], prune) + kept * dc.flag_bytes + sum(
-            self._attribute_bytes(settings, name) for name in self.models_ if name != "positions")
-        mse = prune_mse + dc.zeroing(prune) + sum(m.mse[np.searchsorted(m.choices, settings[n])]
-                                                  for n, m in self.models_.items())
-        return Plan(settings, size, mse, self._rate_point(settings))
+            attribute_bytes(name) for name in self.models_ if name != "positions")
+        mse = prune_mse + dc.zeroing(prune) + sum(attribute_mse(n, m) for n, m in self.models_.items())
+        return Plan(settings, size, mse, self._rate_point)
 
     def _attribute_bytes(self, settings: dict[str, int], name: str) -> float:
         """The bytes :meth:`_predict` counts for attribute ``name`` under ``settings``: after the pruning's
