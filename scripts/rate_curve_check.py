@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from functools import partial
 from pathlib import Path
 from typing import Callable
 
@@ -34,31 +35,15 @@ Curve = Callable[[list[int], np.ndarray, np.ndarray], np.ndarray]
 DEFAULT_QPS = (3, 10, 14, 22, 26, 34, 38)
 
 
-def _in_log(inner: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]) -> Curve:
-    """A curve through ``(qps, log bytes)`` by ``inner`` inside the points, extended along the end segments
-    as the controller's is."""
-    def curve(qps: list[int], values: np.ndarray, grid: np.ndarray) -> np.ndarray:
-        xs, logs = np.asarray(qps, float), np.log(np.maximum(np.asarray(values, float), 1e-12))
-        grid = np.asarray(grid, float)
-        if xs.size == 1:
-            return np.full(grid.shape, float(np.exp(logs[0])))
-        inside = np.clip(grid, xs[0], xs[-1])
-        out = inner(xs, logs, inside) if xs.size > 2 else np.interp(inside, xs, logs)
-        low, high = grid < xs[0], grid > xs[-1]
-        out[low] = logs[0] + (grid[low] - xs[0]) * (logs[1] - logs[0]) / (xs[1] - xs[0])
-        out[high] = logs[-1] + (grid[high] - xs[-1]) * (logs[-1] - logs[-2]) / (xs[-1] - xs[-2])
-        return np.exp(out)
-    return curve
-
-
 def curves() -> dict[str, Curve]:
     from scipy.interpolate import Akima1DInterpolator, CubicSpline
 
     return {
         "pchip (used)": _interpolate_log,
-        "straight segments": _in_log(lambda xs, logs, g: np.interp(g, xs, logs)),
-        "akima": _in_log(lambda xs, logs, g: Akima1DInterpolator(xs, logs)(g)),
-        "natural cubic spline": _in_log(lambda xs, logs, g: CubicSpline(xs, logs, bc_type="natural")(g)),
+        "straight segments": partial(_interpolate_log, inner=lambda xs, logs, g: np.interp(g, xs, logs)),
+        "akima": partial(_interpolate_log, inner=lambda xs, logs, g: Akima1DInterpolator(xs, logs)(g)),
+        "natural cubic spline": partial(_interpolate_log,
+                                        inner=lambda xs, logs, g: CubicSpline(xs, logs, bc_type="natural")(g)),
     }
 
 

@@ -104,7 +104,8 @@ def test_the_hull_is_the_per_multiplier_search_done_at_once(controller):
     bytes and MSE between its plans: the same plans, bytes and MSE as one search per multiplier."""
     lams = np.geomspace(1e-3, 1e15, 400)
     for model in controller.models_.values():
-        assert model.best_choices(lams).tolist() == [int(model.choices[model.best(lam)]) for lam in lams]
+        assert model.best_choices(lams).tolist() == [int(model.choices[np.argmin(model.bytes + lam * model.mse)])
+                                                     for lam in lams]
     reference: dict[tuple, object] = {}
     positions = controller.models_["positions"]
     for index, (_, kept, _) in enumerate(controller.prune_):
@@ -112,7 +113,8 @@ def test_the_hull_is_the_per_multiplier_search_done_at_once(controller):
         for dc in range(len(controller.dc_only_)):
             models = controller._dc_models(dc)
             for lam in lams:
-                settings = {name: int(m.choices[m.best(lam / (kept * controller._prune_factor(index, name)))])
+                settings = {name: int(m.choices[np.argmin(m.bytes + lam / (kept * controller._prune_factor(index, name))
+                                                          * m.mse)])
                             for name, m in models.items() if name != "positions"}
                 settings |= {"positions": int(positions.choices[np.argmin(position_bytes + lam * positions.mse)]),
                              "prune": index, "dc_only": dc}

@@ -199,12 +199,8 @@ class AttributeModel:
     bytes: np.ndarray
     mse: np.ndarray
 
-    def best(self, lam: float) -> int:
-        """Index of the choice minimising ``bytes + lam * mse``."""
-        return int(np.argmin(self.bytes + lam * self.mse))
-
     def best_choices(self, lams: np.ndarray) -> np.ndarray:
-        """The choice minimising ``bytes + lam * mse`` for each of ``lams`` (:meth:`best`'s, all at once)."""
+        """The choice minimising ``bytes + lam * mse`` for each of ``lams``."""
         return self.choices[np.argmin(self.bytes[:, None] + lams[None, :] * self.mse[:, None], axis=0)]
 
 
@@ -736,10 +732,10 @@ class RateController:
         lams = np.geomspace(1e-3, 1e15, 400)
         for index, (_, kept, _) in enumerate(self.prune_):
             position_bytes = np.array([self._position_bytes(int(b), index) for b in model.choices])
-            positions = model.choices[np.argmin(position_bytes[:, None] + lams[None, :] * model.mse[:, None], axis=0)]
+            positions = dataclasses.replace(model, bytes=position_bytes).best_choices(lams)
             for dc in range(len(self.dc_only_)):
                 models = self._dc_models(dc)
-                # each attribute's choice at every multiplier at once (one per multiplier, as :meth:`AttributeModel.best`)
+                # each attribute's choice at every multiplier at once
                 chosen = {name: m.best_choices(lams / (kept * self._prune_factor(index, name)))
                           for name, m in models.items() if name != "positions"}
                 for i in range(lams.size):
@@ -1262,18 +1258,21 @@ def _probe_rows(cloud: GaussianCloud) -> np.ndarray:
     return np.sort(rows)
 
 
-def _interpolate_log(xs: Sequence[float], ys: np.ndarray, grid: np.ndarray) -> np.ndarray:
+def _interpolate_log(xs: Sequence[float], ys: np.ndarray, grid: np.ndarray,
+                     inner: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None) -> np.ndarray:
     """Monotone piecewise-cubic (PCHIP) in log(y) (y floored at a tiny value) between the points,
     extended along the end segments (one point: a constant). A rate falls faster towards the QP at
-    which the codec stops coding detail than one straight segment in log(y) between probes says."""
+    which the codec stops coding detail than one straight segment in log(y) between probes says.
+    ``inner(xs, logs, grid)``: another curve between three points or more (``scripts/rate_curve_check.py``)."""
     from scipy.interpolate import PchipInterpolator
 
+    inner = inner or (lambda x, logs, at: PchipInterpolator(x, logs)(at))
     xs = np.asarray(xs, dtype=np.float64)
     logs = np.log(np.maximum(np.asarray(ys, dtype=np.float64), 1e-12))
     grid = np.asarray(grid, dtype=np.float64)
     if xs.size == 1:
         return np.full(grid.shape, float(np.exp(logs[0])))
-    out = PchipInterpolator(xs, logs)(np.clip(grid, xs[0], xs[-1])) if xs.size > 2 else np.interp(grid, xs, logs)
+    out = inner(xs, logs, np.clip(grid, xs[0], xs[-1])) if xs.size > 2 else np.interp(grid, xs, logs)
     low, high = grid < xs[0], grid > xs[-1]
     out[low] = logs[0] + (grid[low] - xs[0]) * (logs[1] - logs[0]) / (xs[1] - xs[0])
     out[high] = logs[-1] + (grid[high] - xs[-1]) * (logs[-1] - logs[-2]) / (xs[-1] - xs[-2])
