@@ -25,7 +25,7 @@ from gscodec_shac.codec.rate_control import (
     make_target,
     parse_size,
 )
-from gscodec_shac.errors import ValidationError
+from gscodec_shac.errors import RatePointError, ValidationError
 from gscodec_shac.io.ply import write_ply
 
 
@@ -77,6 +77,58 @@ def test_waterfilled_pca_stream_round_trips_with_a_qp_per_component(small_cloud)
 
 
 
+def test_a_fractional_base_qp_moves_only_the_features_whose_offsets_round_up():
+    """Version 17: between two whole base QPs the features' QPs are each the lower or the higher one's,
+    more of them the higher one's as the base rises, and a whole base is unchanged."""
+    rng = np.random.default_rng(3)
+    ranges = rng.uniform(0.05, 4.0, 40)
+    low, high = waterfill_qps(ranges, None, 20), waterfill_qps(ranges, None, 21)
+    assert waterfill_qps(ranges, None, 20.0) == low
+    moved = []
+    for base in (20.25, 20.5, 20.75):
+        qps = waterfill_qps(ranges, None, base)
+        assert all(q in (a, b) for q, a, b in zip(qps, low, high))
+        moved.append(sum(q != a for q, a in zip(qps, low)))
+    assert 0 < moved[0] < moved[1] < moved[2] < len(low)
+
+
+def test_a_fractional_base_qp_is_a_waterfill_rate_point_setting_only():
+    def point(qp: dict, allocation: str = "waterfill") -> object:
+        return parse_rate_points({"defaults": {"codec": "hevc", "sh": {"stage": "pca"},
+                                               "attributes": {"sh_features": {"allocation": allocation}}},
+                                  "points": {"p": {"qp": {"opacity": 20, "rotation": 20, "scale": 20, "sh_dc": 20,
+                                                          "sh_ac": 20, **qp}}}}, "test")["p"]
+
+    assert point({"sh_features": 20.75}).attributes["sh_features"].qp == 20.75
+    whole = point({"sh_features": 21.0}).attributes["sh_features"].qp
+    assert whole == 21 and isinstance(whole, int)
+    for qp, allocation, says in [({"sh_features": 20.5}, "degree", "allocation: waterfill"),
+                                 ({"sh_features": 20.3}, "waterfill", "multiple of 0.25"),
+                                 ({"opacity": 20.5}, "waterfill", "an integer")]:
+        with pytest.raises(RatePointError, match=says):
+            point(qp, allocation)
+
+
+def test_the_controller_chooses_the_waterfilled_base_in_quarter_steps_and_codes_them(controller, small_cloud):
+    """The SH features' base QP is chosen in quarter steps (the degree ladder without an SH stage stays
+    whole), and a plan's fractional base codes each feature at its water-filled QP."""
+    choices = controller.models_["sh"].choices
+    assert np.allclose(np.diff(choices), 0.25) and choices[0] == 0 and choices[-1] == MAX_QP
+    assert all(np.allclose(m.choices, np.round(m.choices)) for n, m in controller.models_.items() if n != "sh")
+    hull = controller._hull()
+    assert any(not float(p.settings["sh"]).is_integer() for p in hull)
+    plan = next(p for p in hull if not float(p.settings["sh"]).is_integer() and p.settings["prune"] == 0)
+    point = plan.rate_point
+    assert point.attributes["sh_features"].qp == plan.settings["sh"]
+    stream = Encoder(point, sh_stage=controller.stage_, fit_stage=False).encode(small_cloud)
+    coded = [q for c in stream.header["attributes"]["sh"]["chunks"]
+             for q in [stream.chunk(c).meta["qp"]] * (stream.chunk(c).meta["channels"][1]
+                                                     - stream.chunk(c).meta["channels"][0])]
+    below = waterfill_qps(controller._sh_ranges, controller.stage_.feature_weights(), math.floor(plan.settings["sh"]))
+    above = waterfill_qps(controller._sh_ranges, controller.stage_.feature_weights(), math.ceil(plan.settings["sh"]))
+    assert all(a <= q <= b for q, a, b in zip(coded, below, above)) and coded != below[:len(coded)]
+
+
 def test_template_codes_at_12_bits_which_qp_0_decodes_closer_than_10(small_cloud):
     """Version 15: x265's QP 0 is no finer at 12 bits, but the 10-bit rounding no longer adds to its error."""
     template = load_rate_point("shac_auto:template")
@@ -104,7 +156,7 @@ def test_the_hull_is_the_per_multiplier_search_done_at_once(controller):
     bytes and MSE between its plans: the same plans, bytes and MSE as one search per multiplier."""
     lams = np.geomspace(1e-3, 1e15, 400)
     for model in controller.models_.values():
-        assert model.best_choices(lams).tolist() == [int(model.choices[np.argmin(model.bytes + lam * model.mse)])
+        assert model.best_choices(lams).tolist() == [float(model.choices[np.argmin(model.bytes + lam * model.mse)])
                                                      for lam in lams]
     reference: dict[tuple, object] = {}
     positions = controller.models_["positions"]
@@ -113,10 +165,10 @@ def test_the_hull_is_the_per_multiplier_search_done_at_once(controller):
         for dc in range(len(controller.dc_only_)):
             models = controller._dc_models(dc)
             for lam in lams:
-                settings = {name: int(m.choices[np.argmin(m.bytes + lam / (kept * controller._prune_factor(index, name))
+                settings = {name: float(m.choices[np.argmin(m.bytes + lam / (kept * controller._prune_factor(index, name))
                                                           * m.mse)])
                             for name, m in models.items() if name != "positions"}
-                settings |= {"positions": int(positions.choices[np.argmin(position_bytes + lam * positions.mse)]),
+                settings |= {"positions": float(positions.choices[np.argmin(position_bytes + lam * positions.mse)]),
                              "prune": index, "dc_only": dc}
                 reference.setdefault(tuple(sorted(settings.items())), controller._predict(settings))
     hull = controller._hull()

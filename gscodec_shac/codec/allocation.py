@@ -22,10 +22,16 @@ import numpy as np
 
 #: The largest HEVC QP.
 MAX_QP = 51
+#: The step of a fractional water-filling base QP (rate points and the rate controller's choices).
+BASE_QP_STEP = 0.25
 
 
-def waterfill_qps(ranges: np.ndarray, weights: np.ndarray | None, base_qp: int) -> list[int]:
+def waterfill_qps(ranges: np.ndarray, weights: np.ndarray | None, base_qp: float) -> list[int]:
     """Per-feature QPs for the kept features (a prefix: trailing features above :data:`MAX_QP` are dropped).
+
+    ``base_qp`` may be fractional (a multiple of :data:`BASE_QP_STEP` in rate points): each feature's
+    QP is still ``QP_base + offset`` rounded to an integer, so a base between two integers moves only
+    the features whose offsets round up there, a finer step in bytes and error than a whole QP.
 
     ``ranges``: each feature's quantiser range (max - min); ``weights``: the rendered
     error per unit feature error (None: all equal). At least one feature is kept.
@@ -35,7 +41,7 @@ def waterfill_qps(ranges: np.ndarray, weights: np.ndarray | None, base_qp: int) 
     strength = np.sqrt(np.maximum(weights, 0.0)) * np.maximum(ranges, 0.0)
     top = float(strength.max()) if strength.size else 0.0
     if top <= 0:
-        return [int(base_qp)] * min(1, ranges.size)
+        return [int(round(base_qp))] * min(1, ranges.size)
     with np.errstate(divide="ignore"):
         offsets = 6.0 * np.log2(top / np.maximum(strength, top * 1e-12))
     qps = np.rint(base_qp + offsets).astype(np.int64)

@@ -482,7 +482,7 @@ class Encoder:
             if stage.feature_kind != "components":
                 raise ValidationError(f"waterfill allocation needs a components stage such as pca, not {stage.name!r}")
             lo, hi = qz.column_extrema(features, rows)
-            qps = waterfill_qps(hi - lo, stage.feature_weights(), int(spec.qp))
+            qps = waterfill_qps(hi - lo, stage.feature_weights(), float(spec.qp))
             if len(qps) < features.shape[1]:
                 stage.keep_features(len(qps))
                 features = features[:, : len(qps)]

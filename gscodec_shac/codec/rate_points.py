@@ -33,7 +33,8 @@ layout of ``positions``) codes the integer labels of the ``vq`` stage. With
 own QP by reverse water-filling (:func:`gscodec_shac.codec.allocation.waterfill_qps`): the
 base QP goes to the feature with the widest weighted range, the others a QP that gives the
 same weighted error, and trailing features whose QP would exceed 51 are dropped (for
-SHAC-PCA this chooses the rank M).
+SHAC-PCA this chooses the rank M). That base QP may be a multiple of 0.25 (``sh_features: 20.75``):
+the features' QPs stay integers, and those whose offsets round up move first.
 Positions may instead be coded as a set (``layout: set``, :mod:`gscodec_shac.codec.positions`):
 the grid order then follows from the decoded positions (Morton order), so the ``sort``
 settings do not apply.
@@ -55,11 +56,13 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import Any, Mapping
 
+from gscodec_shac.codec.allocation import BASE_QP_STEP
 from gscodec_shac.codec.grid.base import CODECS
 from gscodec_shac.errors import RatePointError
 from gscodec_shac.shac.base import STAGES, ShStage
@@ -94,7 +97,7 @@ class AttributeSpec:
 
     codec: str
     bits: int
-    qp: int | tuple[int, ...] | None = None
+    qp: int | float | tuple[int, ...] | None = None  # a float: a fractional water-filling base QP
     options: dict[str, Any] = field(default_factory=dict)
     layout: str = "single"
     allocation: str = "degree"
@@ -103,9 +106,9 @@ class AttributeSpec:
     def lossless(self) -> bool:
         return self.qp is None
 
-    def qp_for_degree(self, degree: int) -> int | None:
+    def qp_for_degree(self, degree: int) -> int | float | None:
         """QP for SH degree ``degree`` (1-based) from a ladder; the last entry repeats."""
-        if self.qp is None or isinstance(self.qp, int):
+        if not isinstance(self.qp, tuple):
             return self.qp
         return self.qp[min(degree, len(self.qp)) - 1]
 
@@ -360,15 +363,17 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
         spec_bits = where.integer(over.get("bits", default_bits), f"attributes.{name}.bits", 1, 16)
         qp_key = f"attributes.{name}.qp" if "qp" in over else f"qp.{name}"
         qp = _qp(where, over["qp"] if "qp" in over else qps.get(name), qp_key,
-                 ladder=name in ("sh_ac", "sh_features", "rotation"))
+                 ladder=name in ("sh_ac", "sh_features", "rotation"), fractional=name in ("sh_ac", "sh_features"))
         if name == "rotation" and isinstance(qp, tuple) and len(qp) > 2:
             raise where.error(qp_key, f"rotation takes one QP or two (x, y, z and w), got {len(qp)}")
         default_layout = "split8" if name in LOSSLESS_ATTRIBUTES else "single"
         layout = where.choice(over.get("layout", default_layout), LAYOUTS, f"attributes.{name}.layout")
         allocation = where.choice(over.get("allocation", "degree"), ALLOCATIONS, f"attributes.{name}.allocation")
-        if allocation == "waterfill" and (name not in ("sh_ac", "sh_features") or not isinstance(qp, int)):
+        if allocation == "waterfill" and (name not in ("sh_ac", "sh_features") or not isinstance(qp, (int, float))):
             raise where.error(f"attributes.{name}.allocation",
                               "waterfill applies to sh_ac / sh_features with one base QP")
+        if isinstance(qp, float) and allocation != "waterfill":
+            raise where.error(qp_key, f"a fractional QP ({qp}) is a water-filling base QP: it needs allocation: waterfill")
         if layout == "set" and name != "positions":
             raise where.error(f"attributes.{name}.layout", "only positions can be coded as a set")
         if name in LOSSLESS_ATTRIBUTES and qp is not None:
@@ -465,7 +470,10 @@ def check_keep_share(value: Any, what: str) -> float:
     return float(value)
 
 
-def _qp(where: Where, value: Any, key: str, *, ladder: bool) -> int | tuple[int, ...] | None:
+def _qp(where: Where, value: Any, key: str, *, ladder: bool,
+        fractional: bool = False) -> int | float | tuple[int, ...] | None:
+    """A QP, a ladder of them (``ladder``), or with ``fractional`` a multiple of
+    :data:`~gscodec_shac.codec.allocation.BASE_QP_STEP` (a water-filling base QP; whole values stay ints)."""
     if value is None:
         return None
     if ladder and isinstance(value, list):
@@ -473,8 +481,13 @@ def _qp(where: Where, value: Any, key: str, *, ladder: bool) -> int | tuple[int,
             raise where.error(key, "a QP ladder needs at least one QP (one per SH degree)")
         return tuple(_qp(where, v, f"{key}[{i}]", ladder=False) for i, v in enumerate(value))
     lo, hi = QP_RANGE
+    if fractional and isinstance(value, float) and math.isfinite(value) and lo <= value <= hi \
+            and (value / BASE_QP_STEP).is_integer():
+        return int(value) if value.is_integer() else value
     if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
         what = "an integer QP or a list of QPs (one per SH degree)" if ladder else "an integer"
+        if fractional:
+            what += f" (a water-filling base QP may also be a multiple of {BASE_QP_STEP})"
         raise where.error(key, f"QP must be {what} in {lo}-{hi}, got {value!r}")
     return value
 
