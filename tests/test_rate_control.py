@@ -92,6 +92,20 @@ def test_a_fractional_base_qp_moves_only_the_features_whose_offsets_round_up():
     assert 0 < moved[0] < moved[1] < moved[2] < len(low)
 
 
+def test_the_sh_error_model_reads_a_fractional_base_where_the_features_qps_have_moved_to():
+    """A quarter step of the base that raises most features' QPs counts as most of a whole step."""
+    from gscodec_shac.codec.allocation import whole_base_equivalent
+
+    ranges = np.random.default_rng(3).uniform(0.05, 4.0, 40)
+    bases = np.arange(20.0, 21.01, 0.25)
+    equivalent = whole_base_equivalent(ranges, None, bases)
+    low, qps = np.array(waterfill_qps(ranges, None, 20)), [np.array(waterfill_qps(ranges, None, b)) for b in bases]
+    moved = [float(np.mean(q[: low.size] - low)) for q in qps[:-1]]  # no feature is dropped below 21 here
+    assert equivalent[0] == 20 and equivalent[-1] == 21
+    assert np.allclose(equivalent[:-1], 20 + np.array(moved)) and np.all(np.diff(equivalent) > 0)
+    assert not np.allclose(equivalent, bases)  # not the base itself: the features' offsets are not evenly spread
+
+
 def test_a_fractional_base_qp_is_a_waterfill_rate_point_setting_only():
     def point(qp: dict, allocation: str = "waterfill") -> object:
         return parse_rate_points({"defaults": {"codec": "hevc", "sh": {"stage": "pca"},
@@ -661,3 +675,10 @@ def test_a_size_target_measures_the_pruning_it_plans_before_its_first_encode(pru
         pruned_somewhere |= any(probed)
         assert controller._prune_factors == {}
     assert pruned_somewhere
+
+
+def test_the_probes_extreme_rows_are_argmin_and_argmax_of_each_column():
+    from gscodec_shac.codec.rate_control import _first_extremes
+
+    values = np.random.default_rng(5).integers(-3, 4, size=(500, 7)).astype(np.float32)  # many ties
+    assert _first_extremes(values).tolist() == [*np.argmin(values, axis=0), *np.argmax(values, axis=0)]

@@ -36,14 +36,38 @@ def waterfill_qps(ranges: np.ndarray, weights: np.ndarray | None, base_qp: float
     ``ranges``: each feature's quantiser range (max - min); ``weights``: the rendered
     error per unit feature error (None: all equal). At least one feature is kept.
     """
+    offsets = waterfill_offsets(ranges, weights)
+    if offsets is None:
+        return [int(round(base_qp))] * min(1, np.size(ranges))
+    qps = np.rint(base_qp + offsets).astype(np.int64)
+    keep = int(np.flatnonzero(qps <= MAX_QP).max()) + 1 if np.any(qps <= MAX_QP) else 1
+    return [int(min(q, MAX_QP)) for q in qps[:keep]]
+
+
+def waterfill_offsets(ranges: np.ndarray, weights: np.ndarray | None) -> np.ndarray | None:
+    """Each feature's QP above the base, ``6 log2(s_0 / s_i)`` (unrounded); None when no feature has a range."""
     ranges = np.asarray(ranges, dtype=np.float64)
     weights = np.ones_like(ranges) if weights is None else np.asarray(weights, dtype=np.float64)
     strength = np.sqrt(np.maximum(weights, 0.0)) * np.maximum(ranges, 0.0)
     top = float(strength.max()) if strength.size else 0.0
     if top <= 0:
-        return [int(round(base_qp))] * min(1, ranges.size)
+        return None
     with np.errstate(divide="ignore"):
-        offsets = 6.0 * np.log2(top / np.maximum(strength, top * 1e-12))
-    qps = np.rint(base_qp + offsets).astype(np.int64)
-    keep = int(np.flatnonzero(qps <= MAX_QP).max()) + 1 if np.any(qps <= MAX_QP) else 1
-    return [int(min(q, MAX_QP)) for q in qps[:keep]]
+        return 6.0 * np.log2(top / np.maximum(strength, top * 1e-12))
+
+
+def whole_base_equivalent(ranges: np.ndarray, weights: np.ndarray | None, bases: np.ndarray) -> np.ndarray:
+    """For each (possibly fractional) base QP, the base on the whole-QP scale at which the features' QPs
+    would be as fine on average: a whole base is itself; between two, the base moves by the mean step
+    of the features' QPs (those that can be coded, offset <= :data:`MAX_QP`), so a quarter step that
+    moves most features' QPs counts as most of a whole one. The rate controller reads the SH error
+    model there: its bytes move feature by feature, and an error model smooth in the base alone made a
+    quarter step after many features' QPs rose look cheap."""
+    bases = np.asarray(bases, dtype=np.float64)
+    offsets = waterfill_offsets(ranges, weights)
+    if offsets is None:
+        return bases.copy()
+    offsets = offsets[offsets <= MAX_QP]
+    floor = np.floor(bases)
+    moved = np.rint(bases[:, None] + offsets[None, :]) - np.rint(floor[:, None] + offsets[None, :])
+    return np.where(bases == floor, bases, floor + moved.mean(axis=1))
