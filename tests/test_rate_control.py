@@ -539,31 +539,52 @@ def test_a_size_target_codes_the_probe_at_its_first_plan_and_plans_again(small_s
 
 
 def test_a_size_target_probes_again_when_its_plan_moves_the_sh_off_the_qps_coded(small_scene, monkeypatch):
-    """Version 16: after a probe at the plan, a plan whose SH base QP the probe has not coded is probed too
-    (at most PLAN_PROBES probes); with probes to spare, the first encode's SH base QP is one the probe coded."""
+    """Version 16: after a probe at the plan, a plan whose SH features the probe has not all coded at the
+    plan's QPs is probed too (at most PLAN_PROBES probes); with probes to spare, the first encode's features
+    are each at a QP the probe coded (version 17: feature by feature, so a quarter step between two bases
+    probed counts as coded)."""
     from gscodec_shac.codec import rate_control
-    from gscodec_shac.codec.rate_control import PROBE_QPS
 
     monkeypatch.setattr(rate_control, "PROBE_MIN", 500)  # a probe smaller than the cloud
     monkeypatch.setattr(rate_control, "PRUNE_THRESHOLDS", (0.0,))  # no pruning: a second probe is for the SH only
     controller = RateController(small_scene.cloud, views=small_scene.cameras, importance_shares=(), workers=2).fit()
-    probed: list[int] = []  # the SH base QP of each plan probed
-    encoded: list[int] = []  # ... and of each plan encoded
+    probed: list[tuple[float, bool]] = []  # the SH base QP of each plan probed, and whether it was measured
+    encoded: list[tuple[float, bool]] = []  # ... of each plan encoded
     probe_at, encode = controller._probe_at, controller._encode
-    monkeypatch.setattr(controller, "_probe_at", lambda plan: probed.append(plan.settings["sh"]) or probe_at(plan))
-    monkeypatch.setattr(controller, "_encode", lambda plan, target: encoded.append(plan.settings["sh"]) or
-                        encode(plan, target))
+
+    def record(log: list, plan) -> None:
+        log.append((plan.settings["sh"], controller._sh_measured(plan)))
+
+    monkeypatch.setattr(controller, "_probe_at", lambda plan: record(probed, plan) or probe_at(plan))
+    monkeypatch.setattr(controller, "_encode", lambda plan, target: record(encoded, plan) or encode(plan, target))
     probed_again = 0
     for bpg in (70, 90, 120, 160, 220):
         probed.clear(), encoded.clear()
         controller.encode(make_target(controller.cloud.num_gaussians, bpg=bpg))
         assert 1 <= len(probed) <= rate_control.PLAN_PROBES
         if len(probed) < rate_control.PLAN_PROBES:
-            assert encoded[0] in {*PROBE_QPS, *probed}
-        for i in range(1, len(probed)):  # probed again only for an SH QP not coded
-            assert probed[i] not in {*PROBE_QPS, *probed[:i]}
+            assert encoded[0][1]
+        assert not any(measured for _, measured in probed[1:])  # probed again only for an SH not coded
         probed_again += len(probed) > 1
     assert probed_again  # the case happens on this scene
+
+
+def test_the_sh_counts_as_measured_feature_by_feature(controller, small_cloud):
+    """Version 17: a base QP is measured when every feature it keeps is at a QP the probe coded: a whole
+    base probed is, the next one is not, and once it is coded too the quarter steps between them are."""
+    settings = controller._hull()[0].settings
+    saved = {feature: dict(points) for feature, points in controller._sh_points.items()}
+    try:
+        def measured(base: float) -> bool:
+            return controller._sh_measured(controller._predict({**settings, "sh": base}))
+
+        assert measured(18) and not measured(19) and not measured(18.5)
+        stream = Encoder(controller._rate_point({**settings, "sh": 19}), sh_stage=controller.stage_,
+                         fit_stage=False).encode(small_cloud)
+        controller._record_sh_chunks(stream, 1.0)
+        assert measured(19) and measured(18.25) and measured(18.5) and measured(18.75) and not measured(19.25)
+    finally:
+        controller._sh_points = saved
 
 
 def test_no_probe_at_the_plan_when_the_probe_is_the_whole_cloud(controller):

@@ -1156,8 +1156,18 @@ class RateController:
         features' curves over-predict their bytes by 4-11% in sum (PCHIP in log, where a feature's rate falls
         ever faster towards the QP that drops it; bonsai, the chair, snowmiku, synthetic 250k), so a plan that
         moved off the QP probed lands under a size target (synthetic 250k at 100 bits/G: the first plan's
-        base QP 18 was a probe QP, the plan after it took 19 and came out 5.2% under, outside the window)."""
-        return "sh" not in plan.settings or plan.settings["sh"] in self._probe_rates.get("sh", {})
+        base QP 18 was a probe QP, the plan after it took 19 and came out 5.2% under, outside the window).
+
+        Water-filled features count one by one (version 17): the SH is measured when the probe has coded
+        every feature the plan keeps at the QP the plan gives it. For a whole base that is the base itself;
+        a quarter step between two bases probed gives each feature the QP of one of them (synthetic 1M at
+        100 bits/G: a plan at 16.75 after probes at 16.25 and 17)."""
+        if "sh" not in plan.settings:
+            return True
+        if not self._waterfilled:
+            return plan.settings["sh"] in self._probe_rates.get("sh", {})
+        qps = waterfill_qps(self._sh_ranges, self.stage_.feature_weights(), float(plan.settings["sh"]))
+        return all(qp in self._sh_points.get(feature, {}) for feature, qp in enumerate(qps))
 
     def _probe_sizes(self, rows: np.ndarray, point: RatePoint, *, record_sh: bool) -> dict[str, int]:
         """The attribute sizes of the cloud's ``rows`` coded at ``point``; with ``record_sh`` each
