@@ -4,9 +4,10 @@ The template rate point (``rate_points/shac_auto.yaml``) fixes the containers an
 stage; for each scene and target the controller chooses seven settings: the opacity below
 which Gaussians are pruned, the position bits (set coding) and the QPs of opacity,
 rotation, scale, DC and the water-filled SHAC-PCA features (whose base QP also picks the
-rank M, :mod:`.allocation`; chosen in quarter steps since version 17). A template with SH stage ``none`` codes every AC coefficient
-instead, on its ``sh_ac`` degree ladder, whose first QP takes the place of the base QP (the
-controller without an SH stage, :func:`gscodec_shac.rd.methods.template_without_sh`).
+rank M, :mod:`.allocation`; chosen in quarter steps since version 17). A template with SH
+stage ``none`` codes every AC coefficient instead, on its ``sh_ac`` degree ladder, whose first
+QP takes the place of the base QP (the controller without an SH stage,
+:func:`gscodec_shac.rd.methods.template_without_sh`).
 
 The attributes are coded independently, so both the size and, for small errors, the
 rendered mean squared error are sums over attributes. The controller therefore models
@@ -92,7 +93,8 @@ TEMPLATE = "shac_auto:template"
 #: on the template's 12-bit samples (``rate_points/shac_auto.yaml``: at QP 0 the 10-bit rounding was part of the error);
 #: 16 also probes again when the plan after a probe moved the SH features' base QP off the QPs coded
 #: (:meth:`RateController._sh_measured`); 17 chooses the water-filled SH features' base QP in quarter steps
-#: (:meth:`RateController._choices`).
+#: (:meth:`RateController._choices`), reads their error model at the whole-base equivalent of a fractional base
+#: (:func:`.allocation.whole_base_equivalent`) and counts their probe feature by feature.
 VERSION = 17
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
@@ -1160,8 +1162,9 @@ class RateController:
 
         Water-filled features count one by one (version 17): the SH is measured when the probe has coded
         every feature the plan keeps at the QP the plan gives it. For a whole base that is the base itself;
-        a quarter step between two bases probed gives each feature the QP of one of them (synthetic 1M at
-        100 bits/G: a plan at 16.75 after probes at 16.25 and 17)."""
+        a quarter step gives each feature the QP of one of the whole bases around it (synthetic 1M at
+        100 bits/G: after probes at 16.25 and 17, the plan at 17.25 has every feature at its QP of base 17
+        or of 18, a probe QP; counted by its base alone, it was probed a third time)."""
         if "sh" not in plan.settings:
             return True
         if not self._waterfilled:
