@@ -56,14 +56,14 @@ def main() -> int:
                    "psnr": round(controller.measured_psnr(stream), 3)}
             rows.append(row)
             print(", ".join(f"{k} {v}" for k, v in row.items()), flush=True)
-    except (GscodecError, json.JSONDecodeError, KeyError) as error:
+        if args.csv:
+            with open(args.csv, "w", newline="") as handle:
+                writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+                writer.writeheader()
+                writer.writerows(rows)
+    except (GscodecError, json.JSONDecodeError, KeyError, OSError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
-    if args.csv:
-        with open(args.csv, "w", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
     return 0
 
 
