@@ -501,7 +501,7 @@ def test_a_size_target_codes_the_probe_at_its_first_plan_and_plans_again(small_s
     controller = RateController(small_scene.cloud, views=small_scene.cameras, importance_shares=(), workers=2).fit()
     n = small_scene.cloud.num_gaussians
     assert controller._probe_rows.size < n
-    target = make_target(n, bpg=120)
+    target = make_target(n, bpg=140)  # one probe at the plan is enough here (version 18: at 120 a second one)
     plan = controller._first_plan(target)
     fitted = {name: model.bytes.copy() for name, model in controller.models_.items()}
     sh_points = {feature: dict(points) for feature, points in controller._sh_points.items()}
@@ -703,3 +703,16 @@ def test_the_probes_extreme_rows_are_argmin_and_argmax_of_each_column():
 
     values = np.random.default_rng(5).integers(-3, 4, size=(500, 7)).astype(np.float32)  # many ties
     assert _first_extremes(values).tolist() == [*np.argmin(values, axis=0), *np.argmax(values, axis=0)]
+
+
+# ---------------------------------------------------------------- version 18: the view metric
+def test_the_sh_stage_is_fitted_in_the_view_metric_of_the_callers_cameras(controller, small_scene):
+    from gscodec_shac.shac.view_metric import view_metric
+
+    cloud = small_scene.cloud
+    expected = view_metric(cloud.means, np.array([c.center for c in small_scene.cameras]), cloud.sh_degree)
+    np.testing.assert_array_equal(controller.stage_.metric_, expected)
+    np.testing.assert_allclose(controller.stage_.feature_weights(), 1.0, rtol=1e-2)  # float16 side information
+    # orbit views are the controller's guess, not where the scene is seen from: no metric
+    assert RateController(cloud, workers=2)._sh_metric() is None
+    assert RateController(cloud, views=small_scene.cameras, workers=2, view_metric=False)._sh_metric() is None

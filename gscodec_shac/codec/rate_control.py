@@ -94,8 +94,9 @@ TEMPLATE = "shac_auto:template"
 #: 16 also probes again when the plan after a probe moved the SH features' base QP off the QPs coded
 #: (:meth:`RateController._sh_measured`); 17 chooses the water-filled SH features' base QP in quarter steps
 #: (:meth:`RateController._choices`), reads their error model at the whole-base equivalent of a fractional base
-#: (:func:`.allocation.whole_base_equivalent`) and counts their probe feature by feature.
-VERSION = 17
+#: (:func:`.allocation.whole_base_equivalent`) and counts their probe feature by feature; 18 fits SHAC-PCA in the
+#: view metric of the caller's cameras (:meth:`RateController._sh_metric`, :mod:`gscodec_shac.shac.view_metric`).
+VERSION = 18
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
 #: QPs at which the probe is encoded; the models interpolate between them (and extrapolate).
@@ -288,6 +289,7 @@ class RateController:
         progress: bool = False,
         max_encodes: int = 6,
         importance_shares: Sequence[float] = IMPORTANCE_SHARES,
+        view_metric: bool = True,
     ) -> None:
         # every encode of the scene, the probes of its subsets too, gets the whole scene's x265 analysis
         point = with_scene_analysis(load_rate_point(template).with_overrides(codec_options=codec_options),
@@ -308,6 +310,10 @@ class RateController:
             cloud, [v for v in views if v.name not in judged] or views if views else None, up=up) \
             if self.importance_shares else []
         self.importance_: np.ndarray | None = None
+        #: the caller's camera centres: SHAC-PCA is fitted in their view metric (version 18, :meth:`_sh_metric`);
+        #: None without cameras (orbit views are the controller's guess, not where the scene is seen from)
+        self.camera_centres = np.array([view.center for view in views], dtype=np.float64) \
+            if views and view_metric else None
         self.background = tuple(float(v) for v in background)
         self.workers = workers
         self.progress = progress
@@ -356,7 +362,7 @@ class RateController:
                 # one BLAS thread, as in the encoder: the position jobs run beside it (a 1M profile at
                 # load 6-8 spent 12 s in this fit, which takes 0.15 s alone; the same bytes)
                 with threadpool_limits(1, user_api="blas"):
-                    self.stage_ = fitted_stage(self.template, cloud)
+                    self.stage_ = fitted_stage(self.template, cloud, self._sh_metric())
             probes = len(PROBE_QPS)
             attributes = len(QP_ATTRIBUTES) - (0 if self.stage_ is not None else 1)
             renders = 1 + attributes + 1 + len(PRUNE_THRESHOLDS) - 1 + len(self.importance_shares) \
@@ -390,6 +396,20 @@ class RateController:
                 name, grid, self._rate_curve(name, grid), sensitivity[name] * _interpolate_log(PROBE_QPS, errors[name], error_at))
         self.overhead_ = overhead
         return self
+
+    def _sh_metric(self) -> np.ndarray | None:
+        """Version 18: the error metric of the AC coefficients as the caller's cameras see them
+        (:func:`~gscodec_shac.shac.view_metric.view_metric`) when the template's SH stage takes one
+        (joint-RGB SHAC-PCA over the AC); None otherwise."""
+        stage = STAGES.get(self.template.sh_stage)
+        if self.camera_centres is None or self.cloud.sh_degree == 0 or not hasattr(stage, "set_metric"):
+            return None
+        params = self.template.sh_params
+        if not params.get("joint_rgb", True) or params.get("include_dc", False):
+            return None
+        from gscodec_shac.shac.view_metric import view_metric
+
+        return view_metric(self.cloud.means, self.camera_centres, self.cloud.sh_degree)
 
     def _choices(self, name: str) -> np.ndarray:
         """The settings QP attribute ``name`` chooses from: QPs 0-51, the water-filled SH features' base QP
@@ -1214,10 +1234,13 @@ class RateController:
 
 
 # ------------------------------------------------------------------ helpers
-def fitted_stage(point: RatePoint, cloud: GaussianCloud) -> ShStage:
+def fitted_stage(point: RatePoint, cloud: GaussianCloud, metric: np.ndarray | None = None) -> ShStage:
     """``point``'s SH stage fitted once on the whole ``cloud`` (its DC too where the stage codes it), as
-    every encode of the rate controller uses it."""
+    every encode of the rate controller uses it; ``metric``: the AC columns' error metric a SHAC-PCA
+    stage is fitted in (:meth:`ShacPCA.set_metric`)."""
     stage = make_stage(point.sh_stage, **point.sh_params)
+    if metric is not None:
+        stage.set_metric(metric)
     ac = cloud.ac_matrix()
     return stage.fit(np.concatenate([cloud.sh_dc, ac], axis=1) if stage.uses_dc else ac)
 

@@ -143,7 +143,25 @@ class ShacPCA(ShStage):
         self.energy_ratio_: np.ndarray | None = None
         self.energy_: np.ndarray | None = None
         self.component_channels_: np.ndarray | None = None
+        #: the (K_in, K_in) error metric of the input columns the next fit orders its components in
+        #: (:meth:`set_metric`); None: every column alike (the paper)
+        self.metric_: np.ndarray | None = None
         self._n_in = 0
+
+    def set_metric(self, metric: np.ndarray | None) -> None:
+        """Fit the next components in the error metric ``metric`` (K_in, K_in), symmetric positive
+        definite, e.g. :func:`~gscodec_shac.shac.view_metric.view_metric`: a unit error on any
+        component then costs one unit of ``e^T metric e`` in the input columns, so the energy order and
+        the water-filled QPs follow what the metric weighs. The stored side information keeps its
+        form (P is the back-projection of eq. 29, no longer orthonormal), so decoders are unchanged.
+        Joint-RGB stages without the DC only; None restores the paper's metric."""
+        if metric is not None:
+            if not self.joint_rgb or self.include_dc:
+                raise ValidationError("a metric applies to joint-RGB SHAC-PCA over the AC coefficients only")
+            metric = np.asarray(metric, dtype=np.float64)
+            if metric.ndim != 2 or metric.shape[0] != metric.shape[1] or not np.allclose(metric, metric.T):
+                raise ValidationError(f"a metric must be a symmetric square matrix, got shape {metric.shape}")
+        self.metric_ = metric
 
     # ------------------------------------------------------------------ fit
     def fit(self, ac: np.ndarray) -> "ShacPCA":
@@ -160,6 +178,13 @@ class ShacPCA(ShStage):
         scale = safe_scale(moments.std(), moments.mean) if self.standardize else np.ones(n_in)
         scatter = moments.scatter / np.outer(scale, scale)  # A'^T A'
 
+        root = None
+        if self.metric_ is not None:
+            if self.metric_.shape[0] != n_in:
+                raise ValidationError(f"the metric is {self.metric_.shape[0]} x {self.metric_.shape[0]}, "
+                                      f"the AC matrix has {n_in} columns")
+            root, root_inv = _sqrt_and_inverse(self.metric_ * np.outer(scale, scale))
+            scatter = root @ scatter @ root  # the standardised columns in the metric
         if self.joint_rgb:
             values, vectors = _sorted_eigh(scatter)
             channels = None
@@ -172,6 +197,8 @@ class ShacPCA(ShStage):
 
         side = SIDE_DTYPES[self.side_dtype]
         self.n_components_ = m
+        if root is not None:
+            vectors = root_inv @ vectors  # F = A' L V, A' = F V^T L^-1: P = L^-1 V back-projects
         self.components_ = vectors[:, :m].astype(side).astype(np.float64)
         self.mean_ = moments.mean.astype(side).astype(np.float64)
         self.scale_ = scale.astype(side).astype(np.float64)
@@ -211,12 +238,22 @@ class ShacPCA(ShStage):
         self._check_fitted()
         ac = check_ac_matrix(ac, self._n_in)
         dtype = np.result_type(ac.dtype, np.float32)
-        weights = self.components_ / self.scale_[:, None]  # float64
+        weights = self._forward() / self.scale_[:, None]  # float64
         out = np.empty((ac.shape[0], self.n_components_), dtype=dtype)
         for start in range(0, ac.shape[0], self.chunk_size):
             stop = start + self.chunk_size
             out[start:stop] = (ac[start:stop] - self.mean_) @ weights
         return out
+
+    def _forward(self) -> np.ndarray:
+        """(K_in, M): the standardised columns -> features. P itself in the paper's metric (orthonormal);
+        in a metric M the weighted least-squares projection onto P's columns, ``M P (P^T M P)^-1``
+        (with every component kept, the exact inverse of the back-projection)."""
+        if self.metric_ is None:
+            return self.components_
+        metric = self.metric_ * np.outer(self.scale_, self.scale_)
+        weighted = metric @ self.components_
+        return weighted @ np.linalg.inv(self.components_.T @ weighted)
 
     def inverse_transform(self, features: np.ndarray) -> np.ndarray:
         """Eq. 29 (consistent form): A~ = F P^T D_sigma + 1 mu^T, shape (N, K_in)."""
@@ -238,9 +275,13 @@ class ShacPCA(ShStage):
         out += self.mean_.astype(out.dtype)
 
     def feature_weights(self) -> np.ndarray:
-        """Unit error on component j moves the input columns by ``P_kj sigma_k`` (eq. 29): weight sum_k (P_kj sigma_k)^2."""
+        """Unit error on component j moves the input columns by ``b_j = P_:j sigma`` (eq. 29): weight
+        ``sum_k b_kj^2``, or ``b_j^T M b_j`` in a metric M (:meth:`set_metric`)."""
         self._check_fitted()
-        return ((self.components_ * self.scale_[:, None]) ** 2).sum(axis=0)
+        back = self.components_ * self.scale_[:, None]
+        if self.metric_ is None:
+            return (back ** 2).sum(axis=0)
+        return np.einsum("kj,kl,lj->j", back, self.metric_, back)
 
     def keep_features(self, count: int) -> None:
         """Keep the first ``count`` components (the side information shrinks with them)."""
@@ -359,6 +400,14 @@ class ShacPCA(ShStage):
             f"ShacPCA({target}, standardize={self.standardize}, include_dc={self.include_dc}, "
             f"joint_rgb={self.joint_rgb}, side_dtype={self.side_dtype!r})"
         )
+
+
+def _sqrt_and_inverse(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The symmetric square root of a symmetric positive definite matrix and its inverse."""
+    values, vectors = np.linalg.eigh(matrix)
+    if values.min() <= values.max() * 1e-12:
+        raise ValidationError("the SH error metric is not positive definite")
+    return (vectors * np.sqrt(values)) @ vectors.T, (vectors / np.sqrt(values)) @ vectors.T
 
 
 def _sorted_eigh(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
