@@ -707,10 +707,11 @@ def test_the_probes_extreme_rows_are_argmin_and_argmax_of_each_column():
 
 # ---------------------------------------------------------------- version 18: the view metric
 def test_the_sh_stage_is_fitted_in_the_view_metric_of_the_callers_cameras(controller, small_scene):
-    from gscodec_shac.shac.view_metric import view_metric
+    from gscodec_shac.shac.view_metric import footprints, view_metric
 
     cloud = small_scene.cloud
-    expected = view_metric(cloud.means, np.array([c.center for c in small_scene.cameras]), cloud.sh_degree)
+    expected = view_metric(cloud.means, small_scene.cameras, cloud.sh_degree,
+                           footprints=footprints(cloud.scales, cloud.activated_opacities()))
     np.testing.assert_array_equal(controller.stage_.metric_, expected)
     np.testing.assert_allclose(controller.stage_.feature_weights(), 1.0, rtol=1e-2)  # float16 side information
     # orbit views are the controller's guess, not where the scene is seen from: no metric

@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from gscodec_shac.camera import look_at
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.sh import sh_basis
 from gscodec_shac.shac.pca import ShacPCA
-from gscodec_shac.shac.view_metric import view_metric
+from gscodec_shac.shac.view_metric import footprints, view_metric
 
 
 def _sphere(count: int, radius: float) -> np.ndarray:
@@ -58,6 +59,35 @@ def test_a_ring_of_cameras_weighs_the_coefficients_unevenly_and_the_identity_sha
     mixed = np.linalg.eigvalsh(view_metric(means, ring, 3)[::3, ::3])
     assert pure.max() / pure.min() > 10
     assert mixed.min() >= 0.1 - 1e-9 and mixed.mean() == pytest.approx(1.0)
+
+
+def test_gaussians_count_by_their_share_of_the_picture():
+    rng = np.random.default_rng(5)
+    means = rng.normal(size=(40, 3))
+    centres = np.array([[7.0, 1.0, 0.5], [-2.0, 6.0, 1.0]])
+    weights = rng.uniform(0.5, 2.0, size=40)
+    hidden = weights.copy()
+    hidden[20:] = 0.0  # transparent or tiny: shows in no pixel
+    np.testing.assert_allclose(view_metric(means, centres, 3, footprints=hidden),
+                               view_metric(means[:20], centres, 3, footprints=weights[:20]), rtol=1e-12)
+    # a Gaussian twice as far from a camera fills a quarter of the pixels
+    one = np.array([[0.0, 0.0, 0.0]])
+    near_far = view_metric(one, np.array([[2.0, 0.0, 0.0], [0.0, 4.0, 0.0]]), 1, footprints=np.ones(1),
+                           identity_share=0.0)[::3, ::3]
+    # SH degree 1 (y, z, x order): the +x camera weighs 4x the +y camera's
+    assert near_far[2, 2] / near_far[0, 0] == pytest.approx(4.0)
+
+
+def test_footprints_are_opacity_times_the_two_largest_axes():
+    log_scales = np.log(np.array([[1.0, 2.0, 3.0], [4.0, 0.5, 1.0]]))
+    np.testing.assert_allclose(footprints(log_scales, np.array([0.5, 1.0])), [0.5 * 6.0, 4.0])
+
+
+def test_a_camera_counts_only_the_gaussians_in_its_picture():
+    means = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 20.0]])  # the second is behind the camera
+    camera = look_at("front", [0.0, 0.0, 10.0], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0], width=64, height=48, fx=60.0)
+    np.testing.assert_allclose(view_metric(means, [camera], 2),
+                               view_metric(means[:1], np.array([camera.center]), 2), rtol=1e-12)
 
 
 @pytest.mark.parametrize("kwargs, message", [

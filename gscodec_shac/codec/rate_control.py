@@ -310,10 +310,9 @@ class RateController:
             cloud, [v for v in views if v.name not in judged] or views if views else None, up=up) \
             if self.importance_shares else []
         self.importance_: np.ndarray | None = None
-        #: the caller's camera centres: SHAC-PCA is fitted in their view metric (version 18, :meth:`_sh_metric`);
+        #: the caller's cameras: SHAC-PCA is fitted in their view metric (version 18, :meth:`_sh_metric`);
         #: None without cameras (orbit views are the controller's guess, not where the scene is seen from)
-        self.camera_centres = np.array([view.center for view in views], dtype=np.float64) \
-            if views and view_metric else None
+        self.metric_cameras: list[Camera] | None = list(views) if views and view_metric else None
         self.background = tuple(float(v) for v in background)
         self.workers = workers
         self.progress = progress
@@ -402,14 +401,16 @@ class RateController:
         (:func:`~gscodec_shac.shac.view_metric.view_metric`) when the template's SH stage takes one
         (joint-RGB SHAC-PCA over the AC); None otherwise."""
         stage = STAGES.get(self.template.sh_stage)
-        if self.camera_centres is None or self.cloud.sh_degree == 0 or not hasattr(stage, "set_metric"):
+        if self.metric_cameras is None or self.cloud.sh_degree == 0 or not hasattr(stage, "set_metric"):
             return None
         params = self.template.sh_params
         if not params.get("joint_rgb", True) or params.get("include_dc", False):
             return None
-        from gscodec_shac.shac.view_metric import view_metric
+        from gscodec_shac.shac.view_metric import footprints, view_metric
 
-        return view_metric(self.cloud.means, self.camera_centres, self.cloud.sh_degree)
+        cloud = self.cloud
+        return view_metric(cloud.means, self.metric_cameras, cloud.sh_degree,
+                           footprints=footprints(cloud.scales, cloud.activated_opacities()))
 
     def _choices(self, name: str) -> np.ndarray:
         """The settings QP attribute ``name`` chooses from: QPs 0-51, the water-filled SH features' base QP

@@ -1,17 +1,22 @@
 """How much each SH AC coefficient shows in the views a scene is seen from (rate controller version 18).
 
 A Gaussian's view-dependent colour from direction ``d`` is ``sum_k c_k Y_k(d)``, so an error ``e``
-in its AC coefficients shows as ``(sum_k e_k Y_k(d))^2`` in that view. Averaged over the Gaussians
-and the cameras it is ``e^T G e`` with
+in its AC coefficients shows as ``(sum_k e_k Y_k(d))^2`` in the pixels it covers in that view.
+Summed over the pixels of the cameras, occlusion aside, the error is ``e^T G e`` with
 
-    G = mean over Gaussians g and cameras v of  Y(d_gv) Y(d_gv)^T,   d_gv = (mu_g - c_v) / |mu_g - c_v|.
+    G = sum over Gaussians g and cameras v that see g of  w_gv Y(d_gv) Y(d_gv)^T,
+    d_gv = (mu_g - c_v) / |mu_g - c_v|,   w_gv = opacity_g * (area of g's two largest axes) / |mu_g - c_v|^2
 
-Over directions spread evenly on the sphere the real SH basis is orthonormal and ``G`` is a multiple
-of the identity: every coefficient counts alike, which is what the paper's SHAC-PCA (eq. 23-29)
-assumes. A capture seen from a ring of cameras is not: on Mip-NeRF 360 bonsai the eigenvalues of
-``G`` (degree 3, normalised to a mean of 1) span 0.22-2.07, the same from the training and the
-held-out cameras. SHAC-PCA fitted in this metric (:meth:`ShacPCA.set_metric`) orders and water-fills its
-components by what the cameras see.
+(``w_gv``: the Gaussian's share of the picture; :func:`footprints`). Over directions spread evenly
+on the sphere the real SH basis is orthonormal and ``G`` is a multiple of the identity: every
+coefficient counts alike, as the paper's SHAC-PCA (eq. 23-29) assumes. Real captures are not seen
+from everywhere: on Mip-NeRF 360 bonsai the eigenvalues of the unweighted ``G`` (degree 3, mean 1)
+span 0.22-2.07, on the snowmiku phone capture 0.04-1.6. SHAC-PCA fitted in this metric
+(:meth:`ShacPCA.set_metric`) orders and water-fills its components by what the cameras see.
+
+The footprint weights matter: unweighted, the far background of a phone capture (seen from one
+direction by every camera) made up most of ``G`` and the SH curve of snowmiku was 7% worse on its
+held-out views than the paper's (docs/rate_control.md, "Controller version 18").
 
 ``G`` is normalised to a mean eigenvalue of 1 and mixed with the identity (:data:`IDENTITY_SHARE`),
 so directions no camera saw keep some weight: a view between the cameras still gets its colours.
@@ -19,8 +24,11 @@ so directions no camera saw keep some weight: a view between the cameras still g
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
+from gscodec_shac.camera import Camera
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.sh import sh_basis
 
@@ -30,16 +38,21 @@ IDENTITY_SHARE = 0.1
 SAMPLE = 20_000
 
 
-def view_metric(means: np.ndarray, centres: np.ndarray, degree: int, *, identity_share: float = IDENTITY_SHARE,
-                sample: int = SAMPLE, seed: int = 0) -> np.ndarray:
+def view_metric(means: np.ndarray, cameras: Sequence[Camera] | np.ndarray, degree: int, *,
+                footprints: np.ndarray | None = None, identity_share: float = IDENTITY_SHARE, sample: int = SAMPLE,
+                seed: int = 0) -> np.ndarray:
     """The (3K', 3K') metric of the AC matrix's columns (coefficient-major, R, G, B interleaved, as
-    :meth:`GaussianCloud.ac_matrix` lays them out) for Gaussians at ``means`` seen from cameras at
-    ``centres``: ``kron(G, I_3)`` with ``G`` as in the module docstring."""
+    :meth:`GaussianCloud.ac_matrix` lays them out) for Gaussians at ``means`` seen from ``cameras``:
+    ``kron(G, I_3)`` with ``G`` as in the module docstring. A :class:`Camera` counts the Gaussians
+    inside its picture only; a row of an (M, 3) array is a camera centre that sees every Gaussian."""
     means = np.asarray(means, dtype=np.float64)
-    centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    if not isinstance(cameras, np.ndarray) and any(isinstance(c, Camera) for c in cameras):
+        views = list(cameras)
+    else:
+        views = list(np.asarray(cameras, dtype=np.float64).reshape(-1, 3))
     if degree < 1:
         raise ValidationError("a view metric needs SH degree >= 1")
-    if centres.shape[0] == 0:
+    if not views:
         raise ValidationError("a view metric needs at least one camera")
     if not 0.0 <= identity_share <= 1.0:
         raise ValidationError(f"identity_share must be in [0, 1], got {identity_share}")
@@ -48,16 +61,37 @@ def view_metric(means: np.ndarray, centres: np.ndarray, degree: int, *, identity
     k = (degree + 1) ** 2 - 1
     gram = np.zeros((k, k))
     count = 0
-    for centre in centres:  # one camera at a time: (sample, K') at most
-        d = means[rows] - centre
-        norm = np.linalg.norm(d, axis=1, keepdims=True)
-        d = d[norm[:, 0] > 0] / norm[norm[:, 0] > 0]
+    points = means[rows]
+    area = None if footprints is None else np.asarray(footprints, dtype=np.float64)[rows]
+    for view in views:  # one camera at a time: (sample, K') at most
+        seen = _in_picture(view, points)
+        d = points[seen] - (view.center if isinstance(view, Camera) else view)
+        norm = np.linalg.norm(d, axis=1)
+        near = norm > 0
+        d, norm = d[near] / norm[near, None], norm[near]
+        weight = np.ones(d.shape[0]) if area is None else area[seen][near] / norm ** 2
         basis = sh_basis(d, degree)[:, 1:]
-        gram += basis.T @ basis
-        count += d.shape[0]
+        gram += (basis * weight[:, None]).T @ basis
+        count += weight.sum()
     if count == 0:
         raise ValidationError("a view metric needs Gaussians away from the cameras")
     gram /= count
     gram *= k / np.trace(gram)
     gram = (1.0 - identity_share) * gram + identity_share * np.eye(k)
     return np.kron(gram, np.eye(3))
+
+
+def footprints(log_scales: np.ndarray, opacities: np.ndarray) -> np.ndarray:
+    """Each Gaussian's weight in the picture at unit distance: its opacity times the area of its two
+    largest axes (``exp`` of their log scales; the picture's area falls with the squared distance)."""
+    axes = np.sort(np.asarray(log_scales, dtype=np.float64), axis=1)
+    return np.asarray(opacities, dtype=np.float64).reshape(-1) * np.exp(axes[:, -1] + axes[:, -2])
+
+
+def _in_picture(view: Camera | np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Which ``points`` a camera sees in its picture (in front of it, inside the image); all for a bare centre."""
+    if not isinstance(view, Camera):
+        return np.ones(points.shape[0], dtype=np.bool_)
+    uv, depth = view.project(points)
+    with np.errstate(invalid="ignore"):
+        return (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < view.width) & (uv[:, 1] >= 0) & (uv[:, 1] < view.height)
