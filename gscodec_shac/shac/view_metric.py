@@ -34,12 +34,14 @@ from gscodec_shac.sh import sh_basis
 
 #: The identity's share in the metric: directions the cameras do not see keep this much weight.
 IDENTITY_SHARE = 0.1
-#: Gaussians sampled for the average (seeded; the metric is a 15 x 15 mean, steady at this size).
-SAMPLE = 20_000
+#: (Gaussian, camera) pairs sampled for the sum: the Gaussians are a seeded sample of this many over the
+#: number of cameras (at least :data:`MIN_SAMPLE`); the metric is a 15 x 15 mean, steady at this size.
+PAIRS = 1_000_000
+MIN_SAMPLE = 2_000
 
 
 def view_metric(means: np.ndarray, cameras: Sequence[Camera] | np.ndarray, degree: int, *,
-                footprints: np.ndarray | None = None, identity_share: float = IDENTITY_SHARE, sample: int = SAMPLE,
+                footprints: np.ndarray | None = None, identity_share: float = IDENTITY_SHARE, pairs: int = PAIRS,
                 seed: int = 0) -> np.ndarray:
     """The (3K', 3K') metric of the AC matrix's columns (coefficient-major, R, G, B interleaved, as
     :meth:`GaussianCloud.ac_matrix` lays them out) for Gaussians at ``means`` seen from ``cameras``:
@@ -56,13 +58,21 @@ def view_metric(means: np.ndarray, cameras: Sequence[Camera] | np.ndarray, degre
         raise ValidationError("a view metric needs at least one camera")
     if not 0.0 <= identity_share <= 1.0:
         raise ValidationError(f"identity_share must be in [0, 1], got {identity_share}")
+    sample = max(MIN_SAMPLE, pairs // len(views))
     rng = np.random.default_rng(seed)
-    rows = rng.choice(means.shape[0], sample, replace=False) if means.shape[0] > sample else np.arange(means.shape[0])
+    area = None if footprints is None else np.asarray(footprints, dtype=np.float64).reshape(-1)
+    if means.shape[0] <= sample:
+        rows = np.arange(means.shape[0])
+    elif area is None:
+        rows = np.sort(rng.choice(means.shape[0], sample, replace=False))
+    else:  # drawn by footprint (a few large Gaussians carry much of the sum), each then counts alike
+        rows = np.sort(rng.choice(means.shape[0], sample, replace=True, p=area / area.sum()))
+        area = np.ones(means.shape[0])
     k = (degree + 1) ** 2 - 1
     gram = np.zeros((k, k))
     count = 0
     points = means[rows]
-    area = None if footprints is None else np.asarray(footprints, dtype=np.float64)[rows]
+    area = None if area is None else area[rows]
     for view in views:  # one camera at a time: (sample, K') at most
         seen = _in_picture(view, points)
         d = points[seen] - (view.center if isinstance(view, Camera) else view)
