@@ -59,7 +59,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="the lowest PSNR (dB) against the uncompressed model on --cameras (else orbit views), "
                         "e.g. 40")
     target.add_argument("--cameras", help="views the quality is judged from (any camera file or capture folder, "
-                        "e.g. cameras.json); with --prune-keep, the views importance is measured from")
+                        "e.g. cameras.json); with a target, SHAC-PCA also weighs the SH by the directions they "
+                        "see the Gaussians from; with --prune-keep, the views importance is measured from")
     target.add_argument("--background", default="0,0,0",
                         help="background colour R,G,B in [0, 1] the views are rendered over (default 0,0,0; "
                         "NeRF-synthetic scenes use 1,1,1)")

@@ -1,0 +1,106 @@
+"""The SH stage alone with and without the cameras' view metric (rate controller version 18).
+
+Fits the rate controller without the metric, takes its plan at ``--bpg`` and, with every other
+setting fixed, codes the SH features at each water-filling base of ``--bases`` with SHAC-PCA fitted
+three ways: the paper's (no metric), in the controller's view metric (footprint-weighted, cameras
+that frame the Gaussian) and in the unweighted metric of the camera centres. PSNR against the
+uncompressed model on the held-out cameras (every ``--test-every``-th) and on the controller's own
+views; prints the BD-rates of the whole file and of the SH bytes against the paper's, and writes
+one CSV row per encode (docs/rate_control.md, "Controller version 18").
+
+    python scripts/sh_view_metric.py ../shared/data/scenes/bonsai_cpu_sh3/point_cloud.ply \\
+        --cameras ../shared/data/scenes/bonsai_cpu_sh3/cameras.json --test-every 8 --csv bonsai.csv
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from gscodec_shac.camera import test_split
+from gscodec_shac.codec import rate_control as rc_module
+from gscodec_shac.codec.decoder import Decoder
+from gscodec_shac.codec.encoder import Encoder
+from gscodec_shac.errors import GscodecError
+from gscodec_shac.io.cameras import load_cameras
+from gscodec_shac.io.models import read_model
+from gscodec_shac.metrics import psnr
+from gscodec_shac.rd.bd import bd_rate
+from gscodec_shac.render import Renderer
+from gscodec_shac.shac.view_metric import footprints, view_metric
+
+
+def _mean_psnr(renderer: Renderer, views: list, references: list[np.ndarray], background: tuple) -> float:
+    return float(np.mean([psnr(np.clip(renderer.render(v, background=background).image, 0, 1), ref)
+                          for v, ref in zip(views, references)]))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("model", help="an SH-3 model (PLY)")
+    parser.add_argument("--cameras", required=True, help="the scene's cameras (the metric needs them)")
+    parser.add_argument("--test-every", type=int, default=8, help="every N-th camera is held out (1: all are)")
+    parser.add_argument("--background", default="0,0,0", help="R,G,B in [0, 1]")
+    parser.add_argument("--bpg", type=float, default=75.0, help="the plan whose other settings stay fixed")
+    parser.add_argument("--bases", type=float, nargs="+", default=[8, 12, 16, 20, 24, 28, 32])
+    parser.add_argument("--csv", type=Path, help="one row per encode")
+    args = parser.parse_args()
+    try:
+        background = tuple(float(v) for v in args.background.split(","))
+        cloud, _ = read_model(args.model)
+        train, test = test_split(load_cameras(args.cameras), args.test_every)
+        train = train or test
+        controller = rc_module.RateController(cloud, views=train, background=background, workers=2,
+                                              view_metric=False).fit()
+    except (GscodecError, OSError, ValueError) as exc:
+        sys.exit(f"error: {exc}")
+    settings = controller.encode(rc_module.Target("bytes", args.bpg * cloud.num_gaussians / 8)).plan.settings
+    print("plan", settings)
+    reference = Renderer(cloud)
+    references = [np.clip(reference.render(v, background=background).image, 0, 1) for v in test]
+    weights = footprints(cloud.scales, cloud.activated_opacities())
+    metrics = {
+        "paper": None,
+        "view metric": view_metric(cloud.means, train, cloud.sh_degree, footprints=weights),
+        "unweighted centres": view_metric(cloud.means, np.array([c.center for c in train]), cloud.sh_degree),
+    }
+    rows = []
+    with tqdm(total=len(metrics) * len(args.bases), desc="SH curves", unit="encode") as bar:
+        for name, metric in metrics.items():
+            stage = rc_module.fitted_stage(controller.template, cloud, metric)
+            for base in args.bases:
+                point = controller._rate_point(dict(settings, sh=base))
+                stream = Encoder(point, sh_stage=stage, fit_stage=False, workers=2,
+                                 importance=controller.importance_).encode(cloud)
+                sizes = stream.attribute_sizes()
+                data = stream.to_bytes()
+                decoded = Renderer(Decoder().decode(data))
+                rows.append({"variant": name, "base": base, "bytes": len(data),
+                             "sh_bytes": sizes.get("sh", 0) + sizes.get("sh_state", 0),
+                             "psnr_held_out": _mean_psnr(decoded, test, references, background),
+                             "psnr_controller_views": controller.measured_psnr(stream)})
+                bar.update(1)
+    if args.csv:
+        with open(args.csv, "w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+    paper = [r for r in rows if r["variant"] == "paper"]
+    for name in list(metrics)[1:]:
+        other = [r for r in rows if r["variant"] == name]
+        parts = []
+        for quality in ("psnr_held_out", "psnr_controller_views"):
+            for rate in ("bytes", "sh_bytes"):
+                value = bd_rate([r[rate] for r in paper], [r[quality] for r in paper],
+                                [r[rate] for r in other], [r[quality] for r in other]).value
+                parts.append(f"{quality} {rate} {value:+.2f}%")
+        print(f"{name} vs paper: " + ", ".join(parts))
+
+
+if __name__ == "__main__":
+    main()
