@@ -172,3 +172,14 @@ def test_a_metric_of_the_wrong_size_is_a_clear_error_at_fit():
     stage.set_metric(np.eye(24))
     with pytest.raises(ValidationError, match="24 x 24"):
         stage.fit(_ac())
+
+
+def test_the_energy_retention_keeps_the_papers_rank_in_a_metric():
+    ac, metric = _ac(), _metric()
+    paper = ShacPCA(energy_retention=0.95).fit(ac)
+    weighed = ShacPCA(energy_retention=0.95)
+    weighed.set_metric(metric)
+    weighed.fit(ac)
+    assert weighed.n_components_ == paper.n_components_ < 45
+    np.testing.assert_array_equal(weighed.energy_, paper.energy_)  # the SH's own spectrum
+    assert not np.allclose(np.abs(weighed.components_), np.abs(paper.components_))  # another basis

@@ -150,11 +150,12 @@ class ShacPCA(ShStage):
 
     def set_metric(self, metric: np.ndarray | None) -> None:
         """Fit the next components in the error metric ``metric`` (K_in, K_in), symmetric positive
-        definite, e.g. :func:`~gscodec_shac.shac.view_metric.view_metric`: a unit error on any
-        component then costs one unit of ``e^T metric e`` in the input columns, so the energy order and
-        the water-filled QPs follow what the metric weighs. The stored side information keeps its
-        form (P is the back-projection of eq. 29, no longer orthonormal), so decoders are unchanged.
-        Joint-RGB stages without the DC only; None restores the paper's metric."""
+        definite, e.g. :func:`~gscodec_shac.shac.view_metric.view_metric`: the rank M is the paper's
+        (eq. 26-27, from the SH's own energy), its basis the first M principal axes in the metric, so a
+        unit error on any component costs one unit of ``e^T metric e`` in the input columns and the
+        water-filled QPs follow what the metric weighs. The stored side information keeps its form
+        (P is the back-projection of eq. 29, no longer orthonormal), so decoders are unchanged.
+        Joint-RGB stages without the DC only; None restores the paper's stage."""
         if metric is not None:
             if not self.joint_rgb or self.include_dc:
                 raise ValidationError("a metric applies to joint-RGB SHAC-PCA over the AC coefficients only")
@@ -178,27 +179,26 @@ class ShacPCA(ShStage):
         scale = safe_scale(moments.std(), moments.mean) if self.standardize else np.ones(n_in)
         scatter = moments.scatter / np.outer(scale, scale)  # A'^T A'
 
-        root = None
-        if self.metric_ is not None:
-            if self.metric_.shape[0] != n_in:
-                raise ValidationError(f"the metric is {self.metric_.shape[0]} x {self.metric_.shape[0]}, "
-                                      f"the AC matrix has {n_in} columns")
-            root, root_inv = _sqrt_and_inverse(self.metric_ * np.outer(scale, scale))
-            scatter = root @ scatter @ root  # the standardised columns in the metric
         if self.joint_rgb:
             values, vectors = _sorted_eigh(scatter)
             channels = None
         else:
             values, vectors, channels = self._per_channel_eigh(scatter)
+        # the spectrum and the energy retention are the SH's own (eq. 26-27), with or without a metric
         self.singular_values_ = np.sqrt(values)
         self.energy_ratio_ = values / values.sum() if values.sum() > 0 else np.full(n_in, 1.0 / n_in)
         self.energy_ = cumulative_energy(values)
         m = self.n_components or rank_for_energy(self.energy_, self.energy_retention)
+        if self.metric_ is not None:  # the rank's basis: the principal axes in the metric (set_metric)
+            if self.metric_.shape[0] != n_in:
+                raise ValidationError(f"the metric is {self.metric_.shape[0]} x {self.metric_.shape[0]}, "
+                                      f"the AC matrix has {n_in} columns")
+            root, root_inv = _sqrt_and_inverse(self.metric_ * np.outer(scale, scale))
+            _, axes = _sorted_eigh(root @ scatter @ root)  # the standardised columns in the metric
+            vectors = root_inv @ axes  # F = A' L V, A' = F V^T L^-1: P = L^-1 V back-projects
 
         side = SIDE_DTYPES[self.side_dtype]
         self.n_components_ = m
-        if root is not None:
-            vectors = root_inv @ vectors  # F = A' L V, A' = F V^T L^-1: P = L^-1 V back-projects
         self.components_ = vectors[:, :m].astype(side).astype(np.float64)
         self.mean_ = moments.mean.astype(side).astype(np.float64)
         self.scale_ = scale.astype(side).astype(np.float64)
