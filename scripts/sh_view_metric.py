@@ -8,8 +8,12 @@ uncompressed model on the held-out cameras (every ``--test-every``-th) and on th
 views; prints the BD-rates of the whole file and of the SH bytes against the paper's, and writes
 one CSV row per encode (docs/rate_control.md, "Controller version 18").
 
+With ``--ladder ER`` it codes the fixed points ``shac_ladder:rp1``-``rp9`` with SHAC-PCA at that
+energy retention instead (what ``gscodec-shac encode IN OUT --cameras C`` does to the default encode).
+
     python scripts/sh_view_metric.py ../shared/data/scenes/bonsai_cpu_sh3/point_cloud.ply \\
         --cameras ../shared/data/scenes/bonsai_cpu_sh3/cameras.json --test-every 8 --csv bonsai.csv
+    python scripts/sh_view_metric.py ... --ladder 0.99
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from gscodec_shac.camera import test_split
 from gscodec_shac.codec import rate_control as rc_module
 from gscodec_shac.codec.decoder import Decoder
 from gscodec_shac.codec.encoder import Encoder
+from gscodec_shac.codec.rate_points import load_rate_point
 from gscodec_shac.errors import GscodecError
 from gscodec_shac.io.cameras import load_cameras
 from gscodec_shac.io.models import read_model
@@ -49,6 +54,8 @@ def main() -> None:
     parser.add_argument("--bpg", type=float, default=75.0, help="the plan whose other settings stay fixed")
     parser.add_argument("--bases", type=float, nargs="+", default=[8, 12, 16, 20, 24, 28, 32])
     parser.add_argument("--csv", type=Path, help="one row per encode")
+    parser.add_argument("--ladder", type=float, metavar="ER",
+                        help="code shac_ladder:rp1-rp9 with SHAC-PCA at this energy retention instead")
     args = parser.parse_args()
     try:
         background = tuple(float(v) for v in args.background.split(","))
@@ -59,8 +66,13 @@ def main() -> None:
                                               view_metric=False).fit()
     except (GscodecError, OSError, ValueError) as exc:
         sys.exit(f"error: {exc}")
-    settings = controller.encode(rc_module.Target("bytes", args.bpg * cloud.num_gaussians / 8)).plan.settings
-    print("plan", settings)
+    if args.ladder is None:
+        settings = controller.encode(rc_module.Target("bytes", args.bpg * cloud.num_gaussians / 8)).plan.settings
+        print("plan", settings)
+        steps = [(base, controller._rate_point(dict(settings, sh=base))) for base in args.bases]
+    else:
+        steps = [(index, load_rate_point(f"shac_ladder:rp{index}").with_overrides(
+            sh_stage="pca", sh_params={"energy_retention": args.ladder})) for index in range(1, 10)]
     reference = Renderer(cloud)
     references = [np.clip(reference.render(v, background=background).image, 0, 1) for v in test]
     weights = footprints(cloud.scales, cloud.activated_opacities())
@@ -70,17 +82,21 @@ def main() -> None:
         "unweighted centres": view_metric(cloud.means, np.array([c.center for c in train]), cloud.sh_degree),
     }
     rows = []
-    with tqdm(total=len(metrics) * len(args.bases), desc="SH curves", unit="encode") as bar:
+    with tqdm(total=len(metrics) * len(steps), desc="SH curves", unit="encode") as bar:
         for name, metric in metrics.items():
             stage = rc_module.fitted_stage(controller.template, cloud, metric)
-            for base in args.bases:
-                point = controller._rate_point(dict(settings, sh=base))
-                stream = Encoder(point, sh_stage=stage, fit_stage=False, workers=2,
-                                 importance=controller.importance_).encode(cloud)
+            for base, point in steps:
+                if args.ladder is None:
+                    encoder = Encoder(point, sh_stage=stage, fit_stage=False, workers=2,
+                                      importance=controller.importance_)
+                else:  # the stage fitted with the rate point's energy retention, as an encode does
+                    encoder = Encoder(point, workers=2, sh_metric=metric)
+                stream = encoder.encode(cloud)
                 sizes = stream.attribute_sizes()
                 data = stream.to_bytes()
                 decoded = Renderer(Decoder().decode(data))
-                rows.append({"variant": name, "base": base, "bytes": len(data),
+                step = "base" if args.ladder is None else "rate_point"
+                rows.append({"variant": name, step: base, "bytes": len(data),
                              "sh_bytes": sizes.get("sh", 0) + sizes.get("sh_state", 0),
                              "psnr_held_out": _mean_psnr(decoded, test, references, background),
                              "psnr_controller_views": controller.measured_psnr(stream)})

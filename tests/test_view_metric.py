@@ -183,3 +183,40 @@ def test_the_energy_retention_keeps_the_papers_rank_in_a_metric():
     assert weighed.n_components_ == paper.n_components_ < 45
     np.testing.assert_array_equal(weighed.energy_, paper.energy_)  # the SH's own spectrum
     assert not np.allclose(np.abs(weighed.components_), np.abs(paper.components_))  # another basis
+
+
+# ---------------------------------------------------------------- fixed rate points with cameras
+def test_cli_encode_with_cameras_fits_shac_pca_in_their_view_metric(tmp_path, capsys):
+    import json
+
+    from gscodec_shac.cli import main
+    from gscodec_shac.codec import Decoder, Encoder
+    from gscodec_shac.io.cameras import load_cameras
+    from gscodec_shac.io.ply import read_ply
+
+    ply, cameras = tmp_path / "scene.ply", tmp_path / "cameras.json"
+    assert main(["synthetic", str(ply), "-n", "1500", "--views", "4"]) == 0
+    weighed, plain = tmp_path / "weighed.gsc", tmp_path / "plain.gsc"
+    point = ["-r", "shac_ladder:rp4", "--sh", "pca", "-q"]
+    capsys.readouterr()
+    assert main(["encode", str(ply), str(weighed), "--cameras", str(cameras), "--json", *point]) == 0
+    assert json.loads(capsys.readouterr().out)["sh_view_metric_cameras"] == 4
+    assert main(["encode", str(ply), str(plain), *point]) == 0
+    cloud = read_ply(ply)
+    metric = view_metric(cloud.means, load_cameras(cameras), cloud.sh_degree,
+                         footprints=footprints(cloud.scales, cloud.activated_opacities()))
+    expected = Encoder("shac_ladder:rp4", sh_stage="pca", sh_metric=metric).encode(cloud).to_bytes()
+    assert weighed.read_bytes() == expected
+    assert weighed.read_bytes() != plain.read_bytes()
+    assert Decoder().decode(weighed.read_bytes()).num_gaussians == cloud.num_gaussians
+    # a stage that cannot take the metric: one clear error, nothing written
+    other = tmp_path / "other.gsc"
+    assert main(["encode", str(ply), str(other), "--cameras", str(cameras), "-r", "shac_ladder:rp4", "--sh", "lst"]) == 2
+    assert "SHAC-PCA" in capsys.readouterr().err and not other.exists()
+
+
+def test_an_encoder_metric_for_a_stage_that_cannot_take_it_is_a_clear_error(small_cloud):
+    from gscodec_shac.codec import Encoder
+
+    with pytest.raises(ValidationError, match="cannot weigh"):
+        Encoder("shac_ladder:rp4", sh_stage="vq", sh_metric=np.eye(45)).encode(small_cloud)

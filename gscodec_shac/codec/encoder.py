@@ -54,6 +54,7 @@ from gscodec_shac.codec.layout import (
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode
 from gscodec_shac.codec.rate_points import AttributeSpec, RatePoint, load_rate_point
 from gscodec_shac.errors import ValidationError
+from gscodec_shac.shac.view_metric import metric_applies
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.limits import default_workers
 from gscodec_shac.progress import optional_bar
@@ -190,6 +191,7 @@ class Encoder:
         chunk_cache: dict | None = None,
         views: Sequence[Camera] | None = None,
         importance: np.ndarray | None = None,
+        sh_metric: np.ndarray | None = None,
     ) -> None:
         self._stage_instance = sh_stage if isinstance(sh_stage, ShStage) else None
         name = self._stage_instance.name if self._stage_instance is not None else sh_stage
@@ -207,6 +209,8 @@ class Encoder:
         self._work_key: str | None = None
         self.views = list(views) if views else None
         self.importance = importance
+        #: the AC columns' error metric a fitted SHAC-PCA stage is fitted in (:mod:`gscodec_shac.shac.view_metric`)
+        self.sh_metric = sh_metric
         self._measured: tuple[GaussianCloud, np.ndarray] | None = None
         self._dc_only: np.ndarray | None = None
         self._dc_only_shape: tuple[int, int] = (0, 0)
@@ -399,6 +403,11 @@ class Encoder:
             return None
         stage = copy.deepcopy(self._stage_instance) or make_stage(self.rate_point.sh_stage, **self.rate_point.sh_params)
         stage.progress = self.progress
+        if self.sh_metric is not None and (self.fit_stage or self._stage_instance is None):
+            if not metric_applies(self.rate_point.sh_stage, self.rate_point.sh_params):
+                raise ValidationError(f"SH stage {self.rate_point.sh_stage!r} cannot weigh the SH by the cameras' "
+                                      "views: only SHAC-PCA over R, G and B together can (pca, joint_rgb)")
+            stage.set_metric(self.sh_metric)
         return stage
 
     def _sh_features(self, stage: ShStage | None, cloud: GaussianCloud, ac: GatheredRows | None,

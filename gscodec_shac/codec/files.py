@@ -21,6 +21,7 @@ from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
 from gscodec_shac.io.cameras import load_cameras
 from gscodec_shac.errors import GscodecError, OutputError
 from gscodec_shac.limits import default_workers
+from gscodec_shac.shac.view_metric import footprints, metric_applies, view_metric
 
 
 def _prestart_x265(rate_point: str | Path | RatePoint) -> None:
@@ -95,11 +96,13 @@ def encode_file(
                                                        dc_only_energy=dc_only_energy,
                                                        dc_only_weight=dc_only_weight)
     views = None
+    given = load_cameras(cameras) if cameras is not None else None
     if point.keep_share < 1.0 or (point.dc_only and point.dc_only_weight == "render"):
-        views = importance_views(cloud, load_cameras(cameras) if cameras is not None else None, up=up)
+        views = importance_views(cloud, given, up=up)
     encoder = Encoder(point, sh_stage=sh, sort=sort, seed=seed,
                       sh_params={k: v for k, v in stage_params.items() if v is not None},
                       codec_options=_codec_options(preset, analysis), progress=progress, views=views)
+    weighed_by = _view_metric(encoder, cloud, given, notes)
     n_input, sh_degree = cloud.num_gaussians, cloud.sh_degree
     means = cloud.means if dynamic is not None else None  # the network's rounding is fitted on them
     stream = encoder.encode(cloud, release_input=True)  # the model is freed once read (memory, issue 25)
@@ -126,8 +129,26 @@ def encode_file(
         "seconds": time.perf_counter() - tic,
         "timings": encoder.timings_,
         "sizes": stream.attribute_sizes(),
+        "sh_view_metric_cameras": weighed_by,
         "notes": notes,
     }
+
+
+def _view_metric(encoder: Encoder, cloud: Any, cameras: list | None, notes: list[str]) -> int | None:
+    """With the caller's ``cameras`` and a SHAC-PCA stage that takes one, set the encoder's SH view metric
+    (:mod:`gscodec_shac.shac.view_metric`: the SH coefficients weighed by the directions the cameras see
+    the Gaussians from; the paper's rank, another basis); returns how many cameras it counts."""
+    if not cameras or cloud.sh_degree == 0:
+        return None
+    point = encoder.rate_point
+    if not metric_applies(point.sh_stage, point.sh_params):
+        if point.keep_share >= 1.0 and not (point.dc_only and point.dc_only_weight == "render"):
+            notes.append(f"the cameras are not used: the SH stage {point.sh_stage!r} does not weigh the SH by "
+                         "the views (SHAC-PCA over R, G and B together does)")
+        return None
+    encoder.sh_metric = view_metric(cloud.means, cameras, cloud.sh_degree,
+                                    footprints=footprints(cloud.scales, cloud.activated_opacities()))
+    return len(cameras)
 
 
 def encode_file_to_target(

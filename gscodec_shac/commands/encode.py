@@ -59,8 +59,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="the lowest PSNR (dB) against the uncompressed model on --cameras (else orbit views), "
                         "e.g. 40")
     target.add_argument("--cameras", help="views the quality is judged from (any camera file or capture folder, "
-                        "e.g. cameras.json); with a target, SHAC-PCA also weighs the SH by the directions they "
-                        "see the Gaussians from; with --prune-keep, the views importance is measured from")
+                        "e.g. cameras.json); SHAC-PCA (a target's, the default's, --sh pca) weighs the SH by the "
+                        "directions they see the Gaussians from; with --prune-keep, the views importance is "
+                        "measured from")
     target.add_argument("--background", default="0,0,0",
                         help="background colour R,G,B in [0, 1] the views are rendered over (default 0,0,0; "
                         "NeRF-synthetic scenes use 1,1,1)")
@@ -123,15 +124,16 @@ def run(args: argparse.Namespace) -> int:
     targets = (args.target_size, args.target_bpg, args.target_psnr)
     if any(t is not None for t in targets):
         return _run_to_target(args)
-    if args.cameras is not None and args.prune_keep is None and args.sh_dc_weight != "render":
-        raise GscodecError("--cameras applies to --target-psnr (the views the quality is judged from), to "
-                           "--prune-keep and to --sh-dc-weight render (the views importance is measured from)")
     if args.sh_dc_only is not None and args.sh_dc_energy is not None:
         raise GscodecError("--sh-dc-only and --sh-dc-energy both choose the DC-only Gaussians: give one of them")
     default = args.rate_point is None
     point = load_rate_point(args.rate_point or DEFAULT_RATE_POINT)
     automatic = default and args.sh is None  # the SH stage is chosen from the model (codec/defaults.py)
     stage = args.sh or (DEFAULT_SH_STAGE if default else point.sh_stage)
+    if args.cameras is not None and args.prune_keep is None and args.sh_dc_weight != "render" and stage != "pca":
+        raise GscodecError("--cameras applies to --target-psnr (the views the quality is judged from), to SHAC-PCA "
+                           "(--sh pca: the SH weighed by the directions they see), to --prune-keep and to "
+                           "--sh-dc-weight render (the views importance is measured from)")
     params = {}
     for flag, users in stage_options().items():
         value = getattr(args, flag)
@@ -165,6 +167,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         chosen = (describe_default(summary["sh_stage"]) if automatic else
                   f"{summary['rate_point']}, SH stage {summary['sh_stage'] or 'none'}")
+        if summary.get("sh_view_metric_cameras"):
+            chosen += f", the SH weighed by the views of {summary['sh_view_metric_cameras']} cameras"
         print(f"wrote {summary['output']}: {summary['bytes']:,} bytes, {size_phrase(summary)} "
               f"({'default: ' if default else ''}{chosen}) in {summary['seconds']:.1f} s")
     return 0

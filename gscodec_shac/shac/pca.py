@@ -27,6 +27,11 @@ Ablation switches (Sec. VII-D1 and the RGB-joint design choice of Sec. V-A):
   block-structured and stored compactly, (K'/3) x M plus each component's
   channel.
 
+In a metric (:meth:`ShacPCA.set_metric`, e.g. the cameras' view metric of
+:mod:`gscodec_shac.shac.view_metric`) the rank M stays the paper's and its basis becomes the
+principal axes in that metric; P is then the back-projection of eq. 29 and no longer
+orthonormal, which decoders do not need to know.
+
 Side information (P, mu, sigma) is rounded to ``side_dtype`` (float32 by default,
 float16 or float64 allowed) right after fitting, and the rounded values are used
 by transform and inverse alike, so encoder and decoder agree exactly.

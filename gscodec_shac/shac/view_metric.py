@@ -91,6 +91,12 @@ def view_metric(means: np.ndarray, cameras: Sequence[Camera] | np.ndarray, degre
     return np.kron(gram, np.eye(3))
 
 
+def metric_applies(stage: str, params: dict) -> bool:
+    """Whether an SH stage (rate-point ``sh_stage`` and ``sh_params``) takes a view metric: SHAC-PCA
+    over R, G and B together, without the DC (:meth:`ShacPCA.set_metric`)."""
+    return stage == "pca" and bool(params.get("joint_rgb", True)) and not params.get("include_dc", False)
+
+
 def footprints(log_scales: np.ndarray, opacities: np.ndarray) -> np.ndarray:
     """Each Gaussian's weight in the picture at unit distance: its opacity times the area of its two
     largest axes (``exp`` of their log scales; the picture's area falls with the squared distance)."""
