@@ -220,3 +220,16 @@ def test_an_encoder_metric_for_a_stage_that_cannot_take_it_is_a_clear_error(smal
 
     with pytest.raises(ValidationError, match="cannot weigh"):
         Encoder("shac_ladder:rp4", sh_stage="vq", sh_metric=np.eye(45)).encode(small_cloud)
+
+
+def test_cameras_an_sh0_model_cannot_use_are_named_in_a_note(tmp_path, capsys):
+    from gscodec_shac.cli import main
+    from gscodec_shac.io.ply import read_ply, write_ply
+
+    ply, cameras = tmp_path / "scene.ply", tmp_path / "cameras.json"
+    assert main(["synthetic", str(ply), "-n", "800", "--views", "3"]) == 0
+    flat = tmp_path / "flat.ply"
+    write_ply(flat, read_ply(ply).truncate_sh(0))
+    capsys.readouterr()
+    assert main(["encode", str(flat), str(tmp_path / "flat.gsc"), "--cameras", str(cameras), "-q"]) == 0
+    assert "the cameras are not used: the model has no view-dependent colour" in capsys.readouterr().err

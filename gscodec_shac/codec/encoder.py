@@ -54,12 +54,12 @@ from gscodec_shac.codec.layout import (
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode
 from gscodec_shac.codec.rate_points import AttributeSpec, RatePoint, load_rate_point
 from gscodec_shac.errors import ValidationError
-from gscodec_shac.shac.view_metric import metric_applies
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.limits import default_workers
 from gscodec_shac.progress import optional_bar
 from gscodec_shac.row_blocks import GatheredRows
 from gscodec_shac.shac.base import ShStage, make_stage
+from gscodec_shac.shac.view_metric import metric_applies
 
 
 @dataclass

@@ -138,13 +138,14 @@ def _view_metric(encoder: Encoder, cloud: Any, cameras: list | None, notes: list
     """With the caller's ``cameras`` and a SHAC-PCA stage that takes one, set the encoder's SH view metric
     (:mod:`gscodec_shac.shac.view_metric`: the SH coefficients weighed by the directions the cameras see
     the Gaussians from; the paper's rank, another basis); returns how many cameras it counts."""
-    if not cameras or cloud.sh_degree == 0:
+    if not cameras:
         return None
     point = encoder.rate_point
-    if not metric_applies(point.sh_stage, point.sh_params):
+    if cloud.sh_degree == 0 or not metric_applies(point.sh_stage, point.sh_params):
         if point.keep_share >= 1.0 and not (point.dc_only and point.dc_only_weight == "render"):
-            notes.append(f"the cameras are not used: the SH stage {point.sh_stage!r} does not weigh the SH by "
-                         "the views (SHAC-PCA over R, G and B together does)")
+            why = "the model has no view-dependent colour (SH degree 0)" if cloud.sh_degree == 0 else \
+                f"the SH stage {point.sh_stage!r} does not weigh the SH by the views (SHAC-PCA over R, G and B does)"
+            notes.append(f"the cameras are not used: {why}")
         return None
     encoder.sh_metric = view_metric(cloud.means, cameras, cloud.sh_degree,
                                     footprints=footprints(cloud.scales, cloud.activated_opacities()))
