@@ -90,6 +90,12 @@ def test_a_camera_counts_only_the_gaussians_in_its_picture():
                                view_metric(means[:1], np.array([camera.center]), 2), rtol=1e-12)
 
 
+def test_cameras_that_frame_no_gaussian_are_a_clear_error():
+    camera = look_at("away", [0.0, 0.0, 10.0], [0.0, 0.0, 20.0], [0.0, 1.0, 0.0], width=64, height=48, fx=60.0)
+    with pytest.raises(ValidationError, match="none of the 1 cameras frames"):
+        view_metric(np.zeros((5, 3)), [camera], 3)
+
+
 @pytest.mark.parametrize("kwargs, message", [
     ({"centres": np.zeros((0, 3))}, "camera"),
     ({"degree": 0}, "degree"),

@@ -84,7 +84,8 @@ def view_metric(means: np.ndarray, cameras: Sequence[Camera] | np.ndarray, degre
         gram += (basis * weight[:, None]).T @ basis
         count += weight.sum()
     if count == 0:
-        raise ValidationError("a view metric needs Gaussians away from the cameras")
+        raise ValidationError(f"none of the {len(views)} cameras frames a visible Gaussian of the model, so they "
+                              "cannot weigh its SH (a camera file of another scene, or another axis convention?)")
     gram /= count
     gram *= k / np.trace(gram)
     gram = (1.0 - identity_share) * gram + identity_share * np.eye(k)
