@@ -37,7 +37,7 @@ from gscodec_shac.io.models import read_model
 from gscodec_shac.metrics import psnr
 from gscodec_shac.rd.bd import bd_rate
 from gscodec_shac.render import Renderer
-from gscodec_shac.shac.view_metric import footprints, view_metric
+from gscodec_shac.shac.view_metric import IDENTITY_SHARE, footprints, view_metric
 
 
 def _mean_psnr(renderer: Renderer, views: list, references: list[np.ndarray], background: tuple) -> float:
@@ -54,6 +54,8 @@ def main() -> None:
     parser.add_argument("--bpg", type=float, default=75.0, help="the plan whose other settings stay fixed")
     parser.add_argument("--bases", type=float, nargs="+", default=[8, 12, 16, 20, 24, 28, 32])
     parser.add_argument("--csv", type=Path, help="one row per encode")
+    parser.add_argument("--identity-share", type=float, default=IDENTITY_SHARE,
+                        help=f"the identity's share in the metrics (default {IDENTITY_SHARE})")
     parser.add_argument("--ladder", type=float, metavar="ER",
                         help="code shac_ladder:rp1-rp9 with SHAC-PCA at this energy retention instead")
     args = parser.parse_args()
@@ -78,8 +80,10 @@ def main() -> None:
     weights = footprints(cloud.scales, cloud.activated_opacities())
     metrics = {
         "paper": None,
-        "view metric": view_metric(cloud.means, train, cloud.sh_degree, footprints=weights),
-        "unweighted centres": view_metric(cloud.means, np.array([c.center for c in train]), cloud.sh_degree),
+        "view metric": view_metric(cloud.means, train, cloud.sh_degree, footprints=weights,
+                                   identity_share=args.identity_share),
+        "unweighted centres": view_metric(cloud.means, np.array([c.center for c in train]), cloud.sh_degree,
+                                          identity_share=args.identity_share),
     }
     rows = []
     with tqdm(total=len(metrics) * len(steps), desc="SH curves", unit="encode") as bar:

@@ -9,7 +9,7 @@ from gscodec_shac.camera import look_at
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.sh import sh_basis
 from gscodec_shac.shac.pca import ShacPCA
-from gscodec_shac.shac.view_metric import footprints, view_metric
+from gscodec_shac.shac.view_metric import IDENTITY_SHARE, footprints, view_metric
 
 
 def _sphere(count: int, radius: float) -> np.ndarray:
@@ -58,7 +58,7 @@ def test_a_ring_of_cameras_weighs_the_coefficients_unevenly_and_the_identity_sha
     pure = np.linalg.eigvalsh(view_metric(means, ring, 3, identity_share=0.0)[::3, ::3])
     mixed = np.linalg.eigvalsh(view_metric(means, ring, 3)[::3, ::3])
     assert pure.max() / pure.min() > 10
-    assert mixed.min() >= 0.1 - 1e-9 and mixed.mean() == pytest.approx(1.0)
+    assert mixed.min() >= IDENTITY_SHARE - 1e-9 and mixed.mean() == pytest.approx(1.0)
 
 
 def test_gaussians_count_by_their_share_of_the_picture():
