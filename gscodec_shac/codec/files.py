@@ -21,7 +21,7 @@ from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
 from gscodec_shac.io.cameras import load_cameras
 from gscodec_shac.errors import GscodecError, OutputError
 from gscodec_shac.limits import default_workers
-from gscodec_shac.shac.view_metric import footprints, metric_applies, view_metric
+from gscodec_shac.shac.view_metric import cloud_view_metric, metric_applies
 
 
 def _prestart_x265(rate_point: str | Path | RatePoint) -> None:
@@ -147,8 +147,7 @@ def _view_metric(encoder: Encoder, cloud: Any, cameras: list | None, notes: list
                 f"the SH stage {point.sh_stage!r} does not weigh the SH by the views (SHAC-PCA over R, G and B does)"
             notes.append(f"the cameras are not used: {why}")
         return None
-    encoder.sh_metric = view_metric(cloud.means, cameras, cloud.sh_degree,
-                                    footprints=footprints(cloud.scales, cloud.activated_opacities()))
+    encoder.sh_metric = cloud_view_metric(cloud, cameras)
     return len(cameras)
 
 

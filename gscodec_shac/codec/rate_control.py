@@ -400,14 +400,12 @@ class RateController:
         """Version 18: the error metric of the AC coefficients as the caller's cameras see them
         (:func:`~gscodec_shac.shac.view_metric.view_metric`) when the template's SH stage takes one
         (joint-RGB SHAC-PCA over the AC); None otherwise."""
-        from gscodec_shac.shac.view_metric import footprints, metric_applies, view_metric
+        from gscodec_shac.shac.view_metric import cloud_view_metric, metric_applies
 
-        cloud = self.cloud
-        if self.metric_cameras is None or cloud.sh_degree == 0 or \
+        if self.metric_cameras is None or self.cloud.sh_degree == 0 or \
                 not metric_applies(self.template.sh_stage, self.template.sh_params):
             return None
-        return view_metric(cloud.means, self.metric_cameras, cloud.sh_degree,
-                           footprints=footprints(cloud.scales, cloud.activated_opacities()))
+        return cloud_view_metric(self.cloud, self.metric_cameras)
 
     def _choices(self, name: str) -> np.ndarray:
         """The settings QP attribute ``name`` chooses from: QPs 0-51, the water-filled SH features' base QP

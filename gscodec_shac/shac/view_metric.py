@@ -25,12 +25,16 @@ so directions no camera saw keep some weight: a view between the cameras still g
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from gscodec_shac.camera import Camera
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.sh import sh_basis
+
+if TYPE_CHECKING:
+    from gscodec_shac.gaussians import GaussianCloud
 
 #: The identity's share in the metric: directions the cameras do not see keep this much weight. Set at 0.1
 #: a priori and kept: 0.3 did better for the SH stage alone at one plan on bonsai and snowmiku, worse for
@@ -92,6 +96,13 @@ def view_metric(means: np.ndarray, cameras: Sequence[Camera] | np.ndarray, degre
     gram *= k / np.trace(gram)
     gram = (1.0 - identity_share) * gram + identity_share * np.eye(k)
     return np.kron(gram, np.eye(3))
+
+
+def cloud_view_metric(cloud: GaussianCloud, cameras: Sequence[Camera]) -> np.ndarray:
+    """:func:`view_metric` of ``cloud``'s Gaussians weighed by their :func:`footprints`, as the rate
+    controller and ``encode --cameras`` fit SHAC-PCA in it."""
+    return view_metric(cloud.means, cameras, cloud.sh_degree,
+                       footprints=footprints(cloud.scales, cloud.activated_opacities()))
 
 
 def metric_applies(stage: str, params: dict) -> bool:
