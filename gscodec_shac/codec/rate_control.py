@@ -78,6 +78,7 @@ from gscodec_shac import limits
 from gscodec_shac.limits import default_workers
 from gscodec_shac.gaussians import GaussianCloud
 from gscodec_shac.shac.base import STAGES, ShStage, make_stage
+from gscodec_shac.shac.view_metric import cloud_view_metric, metric_applies
 
 #: The template rate point of SHAC-auto.
 TEMPLATE = "shac_auto:template"
@@ -400,8 +401,6 @@ class RateController:
         """Version 18: the error metric of the AC coefficients as the caller's cameras see them
         (:func:`~gscodec_shac.shac.view_metric.view_metric`) when the template's SH stage takes one
         (joint-RGB SHAC-PCA over the AC); None otherwise."""
-        from gscodec_shac.shac.view_metric import cloud_view_metric, metric_applies
-
         if self.metric_cameras is None or self.cloud.sh_degree == 0 or \
                 not metric_applies(self.template.sh_stage, self.template.sh_params):
             return None
