@@ -9,7 +9,8 @@ views; prints the BD-rates of the whole file and of the SH bytes against the pap
 one CSV row per encode (docs/rate_control.md, "Controller version 18").
 
 With ``--ladder ER`` it codes the fixed points ``shac_ladder:rp1``-``rp9`` with SHAC-PCA at that
-energy retention instead (what ``gscodec-shac encode IN OUT --cameras C`` does to the default encode).
+energy retention instead (what ``gscodec-shac encode IN OUT --cameras C`` does to the default encode);
+with ``--time-metric`` it only times the metric the controller computes (docs/benchmarks.md).
 
     python scripts/sh_view_metric.py ../shared/data/scenes/bonsai_cpu_sh3/point_cloud.ply \\
         --cameras ../shared/data/scenes/bonsai_cpu_sh3/cameras.json --test-every 8 --csv bonsai.csv
@@ -20,7 +21,9 @@ from __future__ import annotations
 
 import argparse
 import csv
+import statistics
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +40,7 @@ from gscodec_shac.io.models import read_model
 from gscodec_shac.metrics import psnr
 from gscodec_shac.rd.bd import bd_rate
 from gscodec_shac.render import Renderer
-from gscodec_shac.shac.view_metric import IDENTITY_SHARE, footprints, view_metric
+from gscodec_shac.shac.view_metric import IDENTITY_SHARE, cloud_view_metric, footprints, view_metric
 
 
 def _mean_psnr(renderer: Renderer, views: list, references: list[np.ndarray], background: tuple) -> float:
@@ -58,12 +61,23 @@ def main() -> None:
                         help=f"the identity's share in the metrics (default {IDENTITY_SHARE})")
     parser.add_argument("--ladder", type=float, metavar="ER",
                         help="code shac_ladder:rp1-rp9 with SHAC-PCA at this energy retention instead")
+    parser.add_argument("--time-metric", action="store_true",
+                        help="only time the controller's metric of the training cameras (median of 5) and stop")
     args = parser.parse_args()
     try:
         background = tuple(float(v) for v in args.background.split(","))
         cloud, _ = read_model(args.model)
         train, test = test_split(load_cameras(args.cameras), args.test_every)
         train = train or test
+        if args.time_metric:
+            seconds = []
+            for _ in range(5):
+                tic = time.perf_counter()
+                cloud_view_metric(cloud, train)
+                seconds.append(time.perf_counter() - tic)
+            print(f"view metric of {cloud.num_gaussians:,} Gaussians and {len(train)} cameras: "
+                  f"median {statistics.median(seconds):.3f} s of 5 ({min(seconds):.3f}-{max(seconds):.3f})")
+            return
         controller = rc_module.RateController(cloud, views=train, background=background, workers=2,
                                               view_metric=False).fit()
     except (GscodecError, OSError, ValueError) as exc:
