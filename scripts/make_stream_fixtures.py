@@ -20,6 +20,7 @@ beside the stored streams with ``--record-encoder-change "REASON"``):
     python scripts/make_stream_fixtures.py --version 2.1
     python scripts/make_stream_fixtures.py --version 2.2
     python scripts/make_stream_fixtures.py --version 2.3
+    python scripts/make_stream_fixtures.py --version 2.4
 """
 
 from __future__ import annotations
@@ -83,7 +84,13 @@ CASES_V23: dict[str, dict] = {
     "custom_lossless_drop_dc_only": {"input": "input_sh3.ply", "rate_point": "custom_points.yaml:lossless_drop",
                                      "sh": None, "params": {}, "dc_only_share": 0.3},
 }
-CASES = {"1.0": CASES_V1, "2.0": CASES_V2, "2.1": CASES_V21, "2.2": CASES_V22, "2.3": CASES_V23}
+#: Container 2.4 cases: the rotation coded as a rotation vector (feature rotation_vector; the SHAC-auto
+#: template since controller version 19).
+CASES_V24: dict[str, dict] = {
+    "auto_template_rotation_vector": {"input": "input_sh3.ply", "rate_point": "shac_auto:template", "sh": None,
+                                      "params": {}},
+}
+CASES = {"1.0": CASES_V1, "2.0": CASES_V2, "2.1": CASES_V21, "2.2": CASES_V22, "2.3": CASES_V23, "2.4": CASES_V24}
 
 
 def write_inputs() -> None:

@@ -64,7 +64,7 @@ def test_every_bar_is_measured(controller, half_flat):
 
 
 def test_the_plan_leaves_the_flat_gaussians_dc_only_and_the_stream_codes_them(controller, half_flat):
-    target = Target("bytes", 200 * half_flat.num_gaussians / 8)
+    target = Target("bytes", 160 * half_flat.num_gaussians / 8)  # 200 kept the AC from v19 on
     plan = controller.plan(target)
     assert plan.settings["dc_only"] > 0
     bar = controller.dc_only_[plan.settings["dc_only"]].bar

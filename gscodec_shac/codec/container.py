@@ -15,8 +15,8 @@ Versions. A stream is written with the oldest version that can hold it: 1.0 when
 uses no optional feature (so files that 1.0 decoders read stay byte-identical), else
 the newest version any of its features needs (:data:`FEATURE_VERSIONS`: 2.0, 2.1 for a
 quantised deformation network, 2.2 for one with a bit count per matrix, 2.3 for DC-only
-Gaussians). Version 2 headers are deflated (zlib; the header length and CRC are of the stored bytes)
-and lists in ``header["features"]`` the sorted names of the features the stream needs
+Gaussians, 2.4 for rotation vectors). Version 2 headers are deflated (zlib; the header length
+and CRC are of the stored bytes) and lists in ``header["features"]`` the sorted names of the features the stream needs
 (see :data:`FEATURES`). A decoder refuses a feature it does not know, naming it, instead
 of decoding the stream wrongly.
 
@@ -51,7 +51,7 @@ from gscodec_shac.limits import MAX_HEADER_BYTES, MAX_NESTING, json_nesting
 MAGIC = b"\x89GSC\r\n\x1a\n"
 #: The newest format this code writes and reads; it reads every older major too.
 FORMAT_MAJOR = 2
-FORMAT_MINOR = 3
+FORMAT_MINOR = 4
 #: What a version-2 stream may ask for in ``header["features"]``: name -> what it adds.
 FEATURES: dict[str, str] = {
     "positions_set": "positions coded as a Morton-sorted set; the grid order follows from them (codec/positions.py)",
@@ -63,10 +63,12 @@ FEATURES: dict[str, str] = {
                               "(codec/deformation.py)",
     "sh_dc_only": "per-Gaussian SH degree: Gaussians flagged in chunk 'sh_dc_only' keep their DC colour only, "
                   "their AC coefficients are zero (codec/sh_degree.py)",
+    "rotation_vector": "the rotation coded as a rotation vector angle * axis, three channels where the quaternion "
+                       "takes four (codec/attributes.py)",
 }
 #: The version a stream needing the feature is written as (2.0 unless listed).
 FEATURE_VERSIONS: dict[str, tuple[int, int]] = {"deformation_quantised": (2, 1), "deformation_mixed_bits": (2, 2),
-                                                 "sh_dc_only": (2, 3)}
+                                                 "sh_dc_only": (2, 3), "rotation_vector": (2, 4)}
 _PREAMBLE = struct.Struct("<8sHHII")
 PREAMBLE_SIZE = _PREAMBLE.size  # 20
 _MAX_CHUNKS = 4096

@@ -22,7 +22,7 @@ import numpy as np
 
 from gscodec_shac import sh_index
 from gscodec_shac.codec import quantize as qz
-from gscodec_shac.codec.attributes import ATTRIBUTES
+from gscodec_shac.codec.attributes import ATTRIBUTES, transforms
 from gscodec_shac.codec.container import Bitstream, Chunk
 from gscodec_shac.codec.grid.base import GridCodec, get_codec
 from gscodec_shac.codec.header import (
@@ -133,7 +133,8 @@ class Decoder:
             for name, entry in view.attributes.items() if entry.coding == "planes" and name not in streamed
         })
         del planes, tasks, futures, streamed  # the coded planes are not needed past here (peak memory)
-        out.update({name: ATTRIBUTES[name].inverse(values[name], ycbcr) for name in ATTRIBUTES if name in values})
+        out.update({name: _inverse(view.attributes[name])(values[name], ycbcr)
+                    for name in ATTRIBUTES if name in values})
         sh_dc = out.get("sh_dc")
         if view.sh is None:
             sh_rest = np.zeros((n, sh_index.num_rest_coeffs(degree), 3), dtype=np.float32)
@@ -176,6 +177,11 @@ def _cell_selector(padding: str, n: int, cells: _Once) -> Callable[[], slice | n
     return (lambda: slice(0, n)) if padding == "tail" else cells
 
 
+def _inverse(entry: AttributeEntry) -> Callable[[np.ndarray, bool], np.ndarray]:
+    """A cloud attribute's values from what was coded, by the transform its header records."""
+    return transforms(entry.name)[entry.transform].inverse
+
+
 def _stage_input(features: np.ndarray, ycbcr: bool, lossless: bool) -> np.ndarray:
     """Dequantised SH features as the stage inverts them: RGB triplets, float32 unless lossless."""
     if ycbcr:
@@ -195,7 +201,7 @@ class _Dequantized:
         self.tables = entry.quantizer.tables()  # type: ignore[union-attr]
         self.cells = cells
         self.out = np.empty((entry.channels, n), dtype=np.float32)
-        self.inverse = ATTRIBUTES[entry.name].inverse if entry.name in ATTRIBUTES else None
+        self.inverse = _inverse(entry) if entry.name in ATTRIBUTES else None
         self.ycbcr, self.missing, self.done = ycbcr, entry.channels, None
         self._lock = threading.Lock()
 
@@ -300,7 +306,7 @@ def _position_set(chunk: Chunk, entry: AttributeEntry, n: int, ycbcr: bool) -> n
         codes = decode_sorted_codes(chunk.data, n, entry.bits)
     except BitstreamError as exc:
         raise BitstreamError(f"corrupt .gsc file: chunk {chunk.name!r}: {exc}") from None
-    return ATTRIBUTES[entry.name].inverse(entry.quantizer.dequantize(morton_decode(codes)), ycbcr)
+    return _inverse(entry)(entry.quantizer.dequantize(morton_decode(codes)), ycbcr)
 
 
 def _assemble(entry: AttributeEntry, decoded: list, shape: tuple[int, int], cells: np.ndarray,

@@ -36,7 +36,8 @@ from gscodec_shac.camera import Camera
 from gscodec_shac.codec import quantize as qz
 from gscodec_shac.codec import sh_degree as degrees
 from gscodec_shac.codec.allocation import waterfill_qps
-from gscodec_shac.codec.attributes import ATTRIBUTES, SH_FEATURES_TRANSFORM
+from gscodec_shac.codec.attributes import (ATTRIBUTES, ROTATION_VECTOR_FEATURE, SH_FEATURES_TRANSFORM,
+                                          coded_attributes)
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.effort import scene_analysis, with_analysis
 from gscodec_shac.codec.grid.base import GridCodec, get_codec
@@ -270,7 +271,9 @@ class Encoder:
         try:
             # The other attributes' chunks are queued, and start coding, before the SH stage is fitted.
             with self._timed("quantize"):
-                for name, attr in ATTRIBUTES.items():
+                if rp.rotation_form == "vector":
+                    stream.require(ROTATION_VECTOR_FEATURE)
+                for name, attr in coded_attributes(rp.rotation_form).items():
                     if name == "sh_dc" and stage is not None and stage.uses_dc:
                         continue  # the DC travels inside the stage's features
                     values, rows = attr.column(grid_cloud), attr.rows(ycbcr)

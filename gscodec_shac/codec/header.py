@@ -7,7 +7,8 @@ naming the key (``corrupt .gsc file: key 'grid.height': must be an integer in 1.
 got -1``). What is checked, before anything is decoded or allocated:
 
 * types and ranges of every field a reader uses, every enum by name (padding, colour,
-  chunk part, SH stage, grid codec, attribute transform, chunk encoding);
+  chunk part, SH stage, grid codec, attribute transform, chunk encoding); the rotation's
+  transform ``rotation_vector`` (3 channels) only with the feature ``rotation_vector``;
 * counts: Gaussians (at most :data:`~gscodec_shac.limits.MAX_GAUSSIANS`), the grid shape
   against the Gaussian count, channels per attribute, SH features against the SH stage;
 * the chunk table: each chunk named by an attribute exactly once, its plane shape equal
@@ -43,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from gscodec_shac import sh_index
-from gscodec_shac.codec.attributes import ATTRIBUTES, SH_FEATURES_TRANSFORM
+from gscodec_shac.codec.attributes import ATTRIBUTES, ROTATION_VECTOR_FEATURE, SH_FEATURES_TRANSFORM, transforms
 from gscodec_shac.codec.container import Bitstream, Chunk
 from gscodec_shac.codec.grid.base import CODECS
 from gscodec_shac.codec.quantize import Quantizer
@@ -73,8 +74,6 @@ CODINGS = ("planes", "set")
 COLORS = ("rgb", "ycbcr")
 PARTS = ("all", "hi", "lo")
 SORT_POLICIES = ("pad", "drop", "geometry")
-#: Channels of the fixed attributes (the SH features' count is in the header).
-CHANNELS = {"positions": 3, "rotation": 4, "scale": 3, "opacity": 1, "sh_dc": 3}
 _MAX_QP = 51
 _OPTION_TYPES = (str, int, float, bool, type(None))
 
@@ -226,6 +225,9 @@ def read_header(stream: Bitstream) -> StreamHeader:
     sh = _sh_entry(header.get("sh"), degree, n, stream.features)
     codecs = _codec_table(header.get("codecs"))
     attributes = _attributes(header.get("attributes"), sh)
+    if (attributes["rotation"].transform == "rotation_vector") != (ROTATION_VECTOR_FEATURE in stream.features):
+        raise HEADER.error("attributes.rotation.transform", "rotation vectors and the rotation_vector feature "
+                           "come together")
     as_set = attributes["positions"].coding == "set"
     if as_set != ("positions_set" in stream.features) or as_set != (padding == "zorder"):
         raise HEADER.error("grid.padding", "set-coded positions, the zorder padding and the positions_set "
@@ -410,11 +412,11 @@ def _attributes(value: Any, sh: ShEntry | None) -> dict[str, AttributeEntry]:
         key = f"attributes.{name}"
         entry = HEADER.mapping(attrs[name], key, optional=False)
         channels = HEADER.integer(entry.get("channels"), f"{key}.channels", 1, MAX_SH_FEATURES)
-        wanted = sh.features if name == "sh" else CHANNELS[name]
+        forms = {SH_FEATURES_TRANSFORM: None} if name == "sh" else transforms(name)
+        transform = HEADER.choice(entry.get("transform"), tuple(forms), f"{key}.transform")
+        wanted = sh.features if name == "sh" else forms[transform].channels
         if channels != wanted:
             raise HEADER.error(f"{key}.channels", f"must be {wanted}, got {channels}")
-        transform = SH_FEATURES_TRANSFORM if name == "sh" else ATTRIBUTES[name].transform
-        HEADER.choice(entry.get("transform"), (transform,), f"{key}.transform")
         chunks = HEADER.sequence(entry.get("chunks"), f"{key}.chunks")
         names = tuple(HEADER.string(c, f"{key}.chunks[{i}]") for i, c in enumerate(chunks))
         if len(set(names)) != len(names):

@@ -9,6 +9,7 @@ attribute      forward transform                             inverse
 =============  ============================================  ==============================
 positions      ``sign(x) * log1p(|x|)`` (as gsplat / MPEG)   ``sign(y) * expm1(|y|)``
 rotation       unit quaternion, canonical sign ``w >= 0``    as is (unit quaternion)
+rotation       or its rotation vector ``angle * axis``       the unit quaternion
 scale          log-scales as stored                          as is
 opacity        logits as stored                              as is
 SH colour      optional RGB -> YCbCr (BT.709) per triplet    YCbCr -> RGB
@@ -63,6 +64,29 @@ def canonical_quaternions(quats: np.ndarray) -> np.ndarray:
     norm = np.linalg.norm(q, axis=1, keepdims=True)
     unit = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([1.0, 0.0, 0.0, 0.0]))
     return np.where(unit[:, :1] < 0, -unit, unit)
+
+
+def rotation_vectors(quats: np.ndarray) -> np.ndarray:
+    """Rotation vectors ``angle * axis`` (the log map, radians; length at most pi) of quaternions (w first).
+
+    Three numbers per rotation where a quaternion takes four: a step of the vector turns the
+    rotation by at most the step's length, uniformly over all rotations.
+    """
+    q = canonical_quaternions(quats)
+    sine = np.linalg.norm(q[:, 1:], axis=1)
+    angle = 2.0 * np.arctan2(sine, q[:, 0])
+    # angle / sin(angle / 2) -> 2 as the angle -> 0
+    scale = np.where(sine > 1e-12, angle / np.maximum(sine, 1e-12), 2.0)
+    return q[:, 1:] * scale[:, None]
+
+
+def quaternions_from_rotation_vectors(vectors: np.ndarray) -> np.ndarray:
+    """Unit quaternions (w first) of rotation vectors (:func:`rotation_vectors`' inverse; any length)."""
+    r = np.asarray(vectors, dtype=np.float64)
+    angle = np.linalg.norm(r, axis=1)
+    # sin(angle / 2) / angle -> 1/2 as the angle -> 0
+    scale = np.where(angle > 1e-12, np.sin(angle / 2) / np.maximum(angle, 1e-12), 0.5)
+    return np.concatenate([np.cos(angle / 2)[:, None], r * scale[:, None]], axis=1)
 
 
 def rgb_to_ycbcr(rgb: np.ndarray) -> np.ndarray:

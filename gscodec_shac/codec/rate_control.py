@@ -63,7 +63,7 @@ from tqdm.auto import tqdm
 from gscodec_shac.camera import Camera, orbit_views, spread_views
 from gscodec_shac.codec import quantize as qz
 from gscodec_shac.codec.allocation import BASE_QP_STEP, MAX_QP, waterfill_qps, whole_base_equivalent
-from gscodec_shac.codec.attributes import ATTRIBUTES
+from gscodec_shac.codec.attributes import coded_attributes
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.decoder import Decoder
 from gscodec_shac.codec.effort import with_scene_analysis
@@ -96,8 +96,9 @@ TEMPLATE = "shac_auto:template"
 #: (:meth:`RateController._sh_measured`); 17 chooses the water-filled SH features' base QP in quarter steps
 #: (:meth:`RateController._choices`), reads their error model at the whole-base equivalent of a fractional base
 #: (:func:`.allocation.whole_base_equivalent`) and counts their probe feature by feature; 18 fits SHAC-PCA in the
-#: view metric of the caller's cameras (:meth:`RateController._sh_metric`, :mod:`gscodec_shac.shac.view_metric`).
-VERSION = 18
+#: view metric of the caller's cameras (:meth:`RateController._sh_metric`, :mod:`gscodec_shac.shac.view_metric`);
+#: 19 codes the rotation as a rotation vector (the template's ``rotation: {form: vector}``, format 2.4).
+VERSION = 19
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
 #: QPs at which the probe is encoded; the models interpolate between them (and extrapolate).
@@ -373,7 +374,7 @@ class RateController:
                 sh_ranges = None if sh_values is None else np.ptp(sh_values, axis=0)
                 rows = _probe_rows(cloud)
                 if rows.size < cloud.num_gaussians:
-                    rows = np.union1d(rows, _extreme_rows(cloud, sh_values))
+                    rows = np.union1d(rows, _extreme_rows(cloud, sh_values, self.template.rotation_form))
                 sh_values = None
                 self._probe_rows, self._sh_ranges = rows, sh_ranges
                 rates, errors, overhead = self._probe(rows, bar)
@@ -1335,8 +1336,9 @@ def _attribute_mse(name: str, source: GaussianCloud, decoded: GaussianCloud, ycb
         a, b = source.opacities, decoded.opacities
     elif name == "scale":
         a, b = source.scales, decoded.scales
-    elif name == "rotation":
-        a, b = qz.canonical_quaternions(source.quats), decoded.quats
+    elif name == "rotation":  # q and -q are one rotation: the nearer sign (a rotation vector may decode to w < 0)
+        a, b = qz.canonical_quaternions(source.quats), np.asarray(decoded.quats, np.float64)
+        b = np.where(np.sum(a * b, axis=1, keepdims=True) < 0, -b, b)
     elif name == "sh_dc":
         a, b = (qz.triplets_to_ycbcr(source.sh_dc), qz.triplets_to_ycbcr(decoded.sh_dc)) if ycbcr \
             else (source.sh_dc, decoded.sh_dc)
@@ -1345,11 +1347,12 @@ def _attribute_mse(name: str, source: GaussianCloud, decoded: GaussianCloud, ycb
     return float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
 
 
-def _extreme_rows(cloud: GaussianCloud, sh_values: np.ndarray | None) -> np.ndarray:
+def _extreme_rows(cloud: GaussianCloud, sh_values: np.ndarray | None, rotation_form: str) -> np.ndarray:
     """The rows holding each coded channel's minimum and maximum (``sh_values``: the SH features as
-    coded): with them a probe's quantiser ranges, and so its steps and water-filled QPs, are the
-    whole cloud's (a quantiser spans its data's range)."""
-    columns = [ATTRIBUTES[name].forward(cloud, False) for name in ATTRIBUTES if name not in ("positions", "sh_dc")]
+    coded; the rotation in ``rotation_form``): with them a probe's quantiser ranges, and so its steps and
+    water-filled QPs, are the whole cloud's (a quantiser spans its data's range)."""
+    columns = [attribute.forward(cloud, False) for name, attribute in coded_attributes(rotation_form).items()
+               if name not in ("positions", "sh_dc")]
     columns.append(cloud.sh_dc)
     columns.append(qz.triplets_to_ycbcr(cloud.sh_dc))
     if sh_values is not None:

@@ -80,7 +80,9 @@ QP_RANGE = (0, 51)
 
 _FILE_KEYS = {"description", "source", "defaults", "points"}
 _POINT_KEYS = {"description", "codec", "codec_options", "bits", "color", "qp", "attributes", "sh", "sort", "prune"}
-_ATTRIBUTE_KEYS = {"codec", "codec_options", "bits", "qp", "layout", "allocation"}
+_ATTRIBUTE_KEYS = {"codec", "codec_options", "bits", "qp", "layout", "allocation", "form"}
+#: How the rotation may be coded (``attributes.rotation.form``; codec/attributes.py ``ROTATION_FORMS``).
+ROTATION_FORMS = ("quaternion", "vector")
 #: How an SH attribute's features share out QPs: ``degree`` (the QP ladder by SH degree) or
 #: ``waterfill`` (reverse water-filling: one QP per feature from the stage's feature weights).
 ALLOCATIONS = ("degree", "waterfill")
@@ -101,6 +103,7 @@ class AttributeSpec:
     options: dict[str, Any] = field(default_factory=dict)
     layout: str = "single"
     allocation: str = "degree"
+    form: str = "quaternion"  # the rotation's only: quaternion or rotation vector
 
     @property
     def lossless(self) -> bool:
@@ -117,6 +120,8 @@ class AttributeSpec:
         out = {"codec": self.codec, "bits": self.bits, "qp": qp, "options": dict(self.options), "layout": self.layout}
         if self.allocation != "degree":
             out["allocation"] = self.allocation
+        if self.form != "quaternion":
+            out["form"] = self.form
         return out
 
 
@@ -158,6 +163,11 @@ class RatePoint:
     def dc_only(self) -> bool:
         """Whether some Gaussians may be coded DC-only (a share or an energy bar is set)."""
         return self.dc_only_share > 0 or self.dc_only_energy > 0
+
+    @property
+    def rotation_form(self) -> str:
+        """How the rotation is coded: ``quaternion`` (w | x, y, z) or ``vector`` (angle * axis)."""
+        return self.attributes["rotation"].form
 
     @property
     def positions_as_set(self) -> bool:
@@ -378,8 +388,13 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
             raise where.error(f"attributes.{name}.layout", "only positions can be coded as a set")
         if name in LOSSLESS_ATTRIBUTES and qp is not None:
             raise where.error(qp_key, f"{name} are coded losslessly; remove the QP")
+        form = where.choice(over.get("form", "quaternion"), ROTATION_FORMS, f"attributes.{name}.form")
+        if form != "quaternion" and name != "rotation":
+            raise where.error(f"attributes.{name}.form", "only the rotation has a form")
+        if form == "vector" and isinstance(qp, tuple):
+            raise where.error(qp_key, "a rotation vector takes one QP (two are for a quaternion's x, y, z and w)")
         _check_codec(where, spec_codec, qp, f"attributes.{name}.codec")
-        attributes[name] = AttributeSpec(spec_codec, spec_bits, qp, spec_options, layout, allocation)
+        attributes[name] = AttributeSpec(spec_codec, spec_bits, qp, spec_options, layout, allocation, form)
     if "sh_features" not in attributes:
         attributes["sh_features"] = attributes["sh_ac"]
     if "sh_labels" not in attributes:
