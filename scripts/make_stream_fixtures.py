@@ -85,10 +85,13 @@ CASES_V23: dict[str, dict] = {
                                      "sh": None, "params": {}, "dc_only_share": 0.3},
 }
 #: Container 2.4 cases: the rotation coded as a rotation vector (feature rotation_vector; the SHAC-auto
-#: template since controller version 19).
+#: template since controller version 19) and the HEVC parameter sets stored once (feature hevc_parameter_sets,
+#: every stream that needs format 2).
 CASES_V24: dict[str, dict] = {
     "auto_template_rotation_vector": {"input": "input_sh3.ply", "rate_point": "shac_auto:template", "sh": None,
                                       "params": {}},
+    "ladder_rp5_pca_parameter_sets": {"input": "input_sh3.ply", "rate_point": "shac_ladder:rp5", "sh": "pca",
+                                      "params": {"energy_retention": 0.99}},
 }
 CASES = {"1.0": CASES_V1, "2.0": CASES_V2, "2.1": CASES_V21, "2.2": CASES_V22, "2.3": CASES_V23, "2.4": CASES_V24}
 

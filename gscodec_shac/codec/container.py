@@ -15,7 +15,7 @@ Versions. A stream is written with the oldest version that can hold it: 1.0 when
 uses no optional feature (so files that 1.0 decoders read stay byte-identical), else
 the newest version any of its features needs (:data:`FEATURE_VERSIONS`: 2.0, 2.1 for a
 quantised deformation network, 2.2 for one with a bit count per matrix, 2.3 for DC-only
-Gaussians, 2.4 for rotation vectors). Version 2 headers are deflated (zlib; the header length
+Gaussians, 2.4 for rotation vectors and shared HEVC parameter sets). Version 2 headers are deflated (zlib; the header length
 and CRC are of the stored bytes) and lists in ``header["features"]`` the sorted names of the features the stream needs
 (see :data:`FEATURES`). A decoder refuses a feature it does not know, naming it, instead
 of decoding the stream wrongly.
@@ -65,10 +65,13 @@ FEATURES: dict[str, str] = {
                   "their AC coefficients are zero (codec/sh_degree.py)",
     "rotation_vector": "the rotation coded as a rotation vector angle * axis, three channels where the quaternion "
                        "takes four (codec/attributes.py)",
+    "hevc_parameter_sets": "the HEVC streams' parameter sets (VPS, SPS, PPS) stored once, in chunk "
+                           "'hevc_parameter_sets' (codec/parameter_sets.py)",
 }
 #: The version a stream needing the feature is written as (2.0 unless listed).
 FEATURE_VERSIONS: dict[str, tuple[int, int]] = {"deformation_quantised": (2, 1), "deformation_mixed_bits": (2, 2),
-                                                 "sh_dc_only": (2, 3), "rotation_vector": (2, 4)}
+                                                 "sh_dc_only": (2, 3), "rotation_vector": (2, 4),
+                                                 "hevc_parameter_sets": (2, 4)}
 _PREAMBLE = struct.Struct("<8sHHII")
 PREAMBLE_SIZE = _PREAMBLE.size  # 20
 _MAX_CHUNKS = 4096

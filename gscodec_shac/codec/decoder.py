@@ -21,6 +21,7 @@ from typing import Callable
 import numpy as np
 
 from gscodec_shac import sh_index
+from gscodec_shac.codec import parameter_sets
 from gscodec_shac.codec import quantize as qz
 from gscodec_shac.codec.attributes import ATTRIBUTES, transforms
 from gscodec_shac.codec.container import Bitstream, Chunk
@@ -108,8 +109,12 @@ class Decoder:
                     for name, entry in view.attributes.items()
                     if entry.coding == "planes" and entry.quantizer is not None
                     and all(p.part == "all" for p in view.chunks if p.attribute == name)}
+        table = None
+        if view.parameter_sets:  # the HEVC streams' parameter sets, stored once (codec/parameter_sets.py)
+            raw = inflate(stream.chunk(parameter_sets.CHUNK), view.zlib_sizes[parameter_sets.CHUNK])
+            table = parameter_sets.read_table(raw, view.parameter_sets)
         tasks = [_ChunkTask(plan, stream.chunk(plan.name), codecs[plan.codec], grids[plan.attribute][0],
-                            streamed.get(plan.attribute))
+                            streamed.get(plan.attribute), table)
                  for plan in view.chunks]
         # The chunks of most pictures first (the SH grid dominates), then the largest: a decode's time goes with
         # its pictures as much as with its bytes, and a single picture left for the end keeps a core idle for
@@ -286,14 +291,19 @@ class _ChunkTask:
     codec: GridCodec
     shape: tuple[int, int]
     target: _Dequantized | None = None
+    #: The file's HEVC parameter sets (feature ``hevc_parameter_sets``), put back before decoding.
+    parameter_sets: list[bytes] | None = None
 
     def decode(self) -> np.ndarray | None:
         plan, target = self.plan, self.target
         shape = (plan.stop - plan.start, *self.shape)
         try:
+            data = self.chunk.data
+            if plan.parameter_sets is not None:
+                data = parameter_sets.restore(data, plan.parameter_sets, self.parameter_sets or [])
             if target is None:
-                return self.codec.decode(self.chunk.data, shape, plan.bits)
-            self.codec.decode_into(self.chunk.data, shape, plan.bits,
+                return self.codec.decode(data, shape, plan.bits)
+            self.codec.decode_into(data, shape, plan.bits,
                                    lambda first, planes: target.put(plan.start + first, planes))
             return None
         except BitstreamError as exc:

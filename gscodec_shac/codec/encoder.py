@@ -34,6 +34,7 @@ import gscodec_shac
 import gscodec_shac.openmp  # noqa: F401  (numba's OpenMP threads sleep between the sort's parallel regions)
 from gscodec_shac.camera import Camera
 from gscodec_shac.codec import quantize as qz
+from gscodec_shac.codec import parameter_sets
 from gscodec_shac.codec import sh_degree as degrees
 from gscodec_shac.codec.allocation import waterfill_qps
 from gscodec_shac.codec.attributes import (ATTRIBUTES, ROTATION_VECTOR_FEATURE, SH_FEATURES_TRANSFORM,
@@ -322,6 +323,11 @@ class Encoder:
                 sh_header["dc_only"] = int(self._dc_only.sum())
                 sh_header["grid"] = {"height": self._dc_only_shape[0], "width": self._dc_only_shape[1],
                                      "padding": degrees.sh_padding(padding)}
+        # each HEVC stream's parameter sets once per file (codec/parameter_sets.py), in streams that need format 2
+        # anyway (a stream without features stays a 1.0 one, byte for byte); the chunk cache keeps whole chunks
+        if stream.features:
+            parameter_sets.share(stream, {index for (name, _), (_, index) in self._codecs.items()
+                                          if name == parameter_sets.CODEC})
         stream.header = {
             "producer": f"gscodec-shac {gscodec_shac.__version__}",
             "num_gaussians": n,

@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from gscodec_shac import sh_index
+from gscodec_shac.codec import parameter_sets as ps
 from gscodec_shac.codec.attributes import ATTRIBUTES, ROTATION_VECTOR_FEATURE, SH_FEATURES_TRANSFORM, transforms
 from gscodec_shac.codec.container import Bitstream, Chunk
 from gscodec_shac.codec.grid.base import CODECS
@@ -119,6 +120,9 @@ class ChunkPlan:
     bits: int
     codec: int
     qp: int | None
+    #: Per stream of the chunk, the index of its parameter sets in the file's table (feature
+    #: ``hevc_parameter_sets``); None: the chunk's streams hold their own.
+    parameter_sets: tuple[int, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -161,6 +165,8 @@ class StreamHeader:
     chunk_attributes: dict[str, str]
     #: Declared inflated size of each zlib chunk (``grid_mask``, ``sh_state``).
     zlib_sizes: dict[str, int]
+    #: Entries of the HEVC parameter-set table (feature ``hevc_parameter_sets``; 0: none).
+    parameter_sets: int = 0
     # what the writer recorded for people (``info``); None when absent
     producer: str | None = None
     input_gaussians: int | None = None
@@ -234,7 +240,8 @@ def read_header(stream: Bitstream) -> StreamHeader:
                            "feature come together")
     chunks = _chunk_plans(stream, attributes, shape, len(codecs), sh.grid if sh else None)
     deformation = _deformation(header.get("deformation"), stream.features)
-    zlib_sizes = _zlib_chunks(stream, attributes, sh, padding, shape[0] * shape[1], deformation, n)
+    sets = _parameter_sets(stream, chunks, codecs)
+    zlib_sizes = _zlib_chunks(stream, attributes, sh, padding, shape[0] * shape[1], deformation, n, sets > 0)
 
     prune = HEADER.mapping(header.get("prune"), "prune")
     policy = grid.get("policy")
@@ -260,6 +267,7 @@ def read_header(stream: Bitstream) -> StreamHeader:
         chunk_attributes={c.name: _optional_string(c.meta.get("attribute"), f"chunks.{c.name}.attribute") or c.name
                           for c in stream.chunks},
         zlib_sizes=zlib_sizes,
+        parameter_sets=sets,
         producer=_optional_string(header.get("producer"), "producer"),
         input_gaussians=_optional_integer(header.get("input_gaussians"), "input_gaussians", n, 1 << 40),
         pruned=_optional_integer(prune.get("pruned"), "prune.pruned", 0, 1 << 40) or 0,
@@ -463,7 +471,7 @@ def _chunk_plans(stream: Bitstream, attributes: dict[str, AttributeEntry], shape
     for attribute in attributes.values():
         cover = {part: np.zeros(attribute.channels, dtype=np.int64) for part in PARTS}
         for name in attribute.chunks:
-            if name in owner or name in ("grid_mask", "sh_state", "sh_dc_only"):
+            if name in owner or name in ("grid_mask", "sh_state", "sh_dc_only", ps.CHUNK):
                 raise HEADER.error(f"attributes.{attribute.name}.chunks", f"chunk {name!r} is listed twice")
             owner[name] = attribute.name
             if name not in present:
@@ -516,7 +524,33 @@ def _chunk_plan(meta: dict, name: str, attribute: AttributeEntry, shape: tuple[i
     qp = meta.get("qp")
     if qp is not None:
         HEADER.integer(qp, f"{key}.qp", 0, _MAX_QP)
-    return ChunkPlan(name, attribute.name, start, stop, part, bits, codec, qp)
+    indices = meta.get(ps.META_KEY)
+    if indices is not None:
+        indices = tuple(HEADER.integer(i, f"{key}.{ps.META_KEY}[{k}]", 0, ps.MAX_SETS - 1)
+                        for k, i in enumerate(HEADER.sequence(indices, f"{key}.{ps.META_KEY}")))
+    return ChunkPlan(name, attribute.name, start, stop, part, bits, codec, qp, indices)
+
+
+def _parameter_sets(stream: Bitstream, chunks: tuple[ChunkPlan, ...], codecs: tuple[CodecEntry, ...]) -> int:
+    """The entries of the HEVC parameter-set table: the feature, the table chunk (its ``sets``) and
+    every hevc chunk's indices come together, each index inside the table; 0 without the feature."""
+    if ps.FEATURE not in stream.features:
+        listed = next((plan.name for plan in chunks if plan.parameter_sets is not None), None)
+        if listed is not None:
+            raise HEADER.error(f"chunks.{listed}.{ps.META_KEY}", f"needs the {ps.FEATURE} feature")
+        return 0
+    if not any(c.name == ps.CHUNK for c in stream.chunks):
+        raise HEADER.error("chunks", f"chunk {ps.CHUNK!r} is missing")
+    sets = HEADER.integer(stream.chunk(ps.CHUNK).meta.get("sets"), f"chunks.{ps.CHUNK}.sets", 1, ps.MAX_SETS)
+    for plan in chunks:
+        hevc = codecs[plan.codec].name == ps.CODEC
+        if (plan.parameter_sets is not None) != hevc:
+            raise HEADER.error(f"chunks.{plan.name}.{ps.META_KEY}", "is listed exactly for the hevc chunks of a "
+                               f"stream with the {ps.FEATURE} feature")
+        if hevc and (not plan.parameter_sets or max(plan.parameter_sets) >= sets):
+            raise HEADER.error(f"chunks.{plan.name}.{ps.META_KEY}", f"must list indices below {sets}, "
+                               f"got {list(plan.parameter_sets)}")
+    return sets
 
 
 def _deformation(value: Any, features: set[str]) -> DeformationEntry | None:
@@ -562,9 +596,13 @@ def _deformation_bits(value: Any, arch: DeformArch, features: set[str]) -> int |
 
 
 def _zlib_chunks(stream: Bitstream, attributes: dict[str, AttributeEntry], sh: ShEntry | None, padding: str,
-                 cells: int, deformation: DeformationEntry | None = None, n: int = 0) -> dict[str, int]:
+                 cells: int, deformation: DeformationEntry | None = None, n: int = 0,
+                 parameter_sets: bool = False) -> dict[str, int]:
     """``{name: raw size}`` of the zlib chunks; checks no chunk is unaccounted for."""
-    expected = {}
+    expected: dict[str, int | None] = {}
+    limits = {ps.CHUNK: ps.MAX_TABLE_BYTES}
+    if parameter_sets:
+        expected[ps.CHUNK] = None
     if padding == "mask":
         expected["grid_mask"] = (cells + 7) // 8
     if sh is not None:
@@ -587,7 +625,8 @@ def _zlib_chunks(stream: Bitstream, attributes: dict[str, AttributeEntry], sh: S
         chunk = stream.chunk(name)
         key = f"chunks.{name}"
         HEADER.choice(chunk.meta.get("encoding"), ("zlib",), f"{key}.encoding")
-        limit = exact if exact is not None else min(MAX_STATE_BYTES, STATE_BASE_BYTES + STATE_BYTES_PER_CELL * cells)
+        limit = exact if exact is not None else limits.get(
+            name, min(MAX_STATE_BYTES, STATE_BASE_BYTES + STATE_BYTES_PER_CELL * cells))
         raw_size = HEADER.integer(chunk.meta.get("raw_size"), f"{key}.raw_size", exact or 0, limit)
         if raw_size > ZLIB_MAX_RATIO * len(chunk.data):
             raise HEADER.error(f"{key}.raw_size", f"{raw_size:,} bytes cannot come from {len(chunk.data):,} "

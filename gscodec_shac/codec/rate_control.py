@@ -63,6 +63,7 @@ from tqdm.auto import tqdm
 from gscodec_shac.camera import Camera, orbit_views, spread_views
 from gscodec_shac.codec import quantize as qz
 from gscodec_shac.codec.allocation import BASE_QP_STEP, MAX_QP, waterfill_qps, whole_base_equivalent
+from gscodec_shac.codec import parameter_sets
 from gscodec_shac.codec.attributes import coded_attributes
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.decoder import Decoder
@@ -97,7 +98,8 @@ TEMPLATE = "shac_auto:template"
 #: (:meth:`RateController._choices`), reads their error model at the whole-base equivalent of a fractional base
 #: (:func:`.allocation.whole_base_equivalent`) and counts their probe feature by feature; 18 fits SHAC-PCA in the
 #: view metric of the caller's cameras (:meth:`RateController._sh_metric`, :mod:`gscodec_shac.shac.view_metric`);
-#: 19 codes the rotation as a rotation vector (the template's ``rotation: {form: vector}``, format 2.4).
+#: 19 codes the rotation as a rotation vector (the template's ``rotation: {form: vector}``, format 2.4) and
+#: counts the file's HEVC parameter-set table (:mod:`.parameter_sets`) with its header.
 VERSION = 19
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
@@ -588,7 +590,8 @@ class RateController:
                 self._probe_decoded = (rows[encoder.order_], decoded)
             if "sh" in names and self._waterfilled:
                 self._record_sh_chunks(stream, scale)
-            overhead = max(overhead, sizes.get("header", 0))
+            # the header and the HEVC parameter-set table (codec/parameter_sets.py): a file's fixed bytes
+            overhead = max(overhead, sizes.get("header", 0) + sizes.get(parameter_sets.CHUNK, 0))
             if bar is not None:
                 bar.update(1)
         return rates, errors, overhead
