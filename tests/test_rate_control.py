@@ -241,6 +241,24 @@ def test_a_psnr_search_tries_single_steps_from_a_start_whose_own_prediction_is_s
     assert _key(found[0]) in singles - {_key(below)}
 
 
+def test_a_bigger_encode_below_the_target_does_not_bound_the_chain(controller):
+    """Version 19: an encode below the target with more bytes than the smallest one above the window
+    (another QP mix; on bonsai 0.9 dB lower at the same size) is no bracket along the chain: the next
+    plan is the one chosen without it (before, it stopped the chain after one step each time)."""
+    target = Target("psnr", 38.0)
+    start = controller.plan(target)
+    size = math.ceil(start.predicted_bytes)
+    above = (start, size, target.value + PSNR_WINDOW + 0.6)
+    bigger_below = (controller._step(start, cheaper=False), size + 1000, target.value - 0.3)
+    tried = {_key(start), _key(bigger_below[0])}
+    alone = controller._next_for_quality(target, [above], tried)
+    assert alone is not None
+    assert controller._next_for_quality(target, [above, bigger_below], tried) == alone
+    smaller_below = (controller._step(start, cheaper=True), size - 1000, target.value - 0.3)
+    bracketed = controller._next_for_quality(target, [above, smaller_below], tried | {_key(smaller_below[0])})
+    assert bracketed != alone  # a consistent bracket still bounds and scales the chain
+
+
 def test_unreachable_targets_name_the_reachable_limit(controller):
     with pytest.raises(TargetUnreachableError, match=r"smallest file .* \(about [\d,]+ bytes"):
         controller.plan(Target("bytes", 100))

@@ -99,7 +99,8 @@ TEMPLATE = "shac_auto:template"
 #: (:func:`.allocation.whole_base_equivalent`) and counts their probe feature by feature; 18 fits SHAC-PCA in the
 #: view metric of the caller's cameras (:meth:`RateController._sh_metric`, :mod:`gscodec_shac.shac.view_metric`);
 #: 19 codes the rotation as a rotation vector (the template's ``rotation: {form: vector}``, format 2.4) and
-#: counts the file's HEVC parameter-set table (:mod:`.parameter_sets`) with its header.
+#: counts the file's HEVC parameter-set table (:mod:`.parameter_sets`) with its header; its PSNR search
+#: ignores a bigger encode below the target as a bracket and lets the slope reach 4 (:data:`PSNR_SLOPES`).
 VERSION = 19
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
@@ -140,8 +141,9 @@ FINE_PSNR_COST = 0.05
 #: ... a PSNR target when the measured PSNR is within this many dB above it.
 PSNR_WINDOW = 0.3
 #: Bounds of the slope of measured against predicted PSNR between the encodes on either side of
-#: a PSNR target's window, and the spread of predictions (dB) it needs (:meth:`RateController._next_for_quality`).
-PSNR_SLOPES = (0.25, 1.5)
+#: a PSNR target's window, and the spread of predictions (dB) it needs (:meth:`RateController._next_for_quality`;
+#: the upper bound 1.5 up to version 18: bonsai's 38 dB chain measured 3.7).
+PSNR_SLOPES = (0.25, 4.0)
 PSNR_SLOPE_SPREAD = 0.1
 #: A PSNR target rescales each attribute model by the renders of its first encode (version 12) by a
 #: factor within these bounds, those models that hold at least this share of the plan's error.
@@ -1039,14 +1041,19 @@ class RateController:
         single steps that all lower (or raise) the quality, where the rendered PSNR follows the
         models far better than between two plans of other QP mixes (two plans of about the same size
         can differ by 0.3 dB, the window's width). The cheapest untried plan estimated to reach the
-        window's middle is next (else the best estimated); None when the chain holds no untried plan."""
+        window's middle is next (else the best estimated); None when the chain holds no untried plan.
+        An encode below the target with more bytes than the start (another QP mix, 0.9 dB lower at the
+        same size on bonsai) bounds nothing along the chain: without it the chain walks on (version 19;
+        with it every encode moved by one step, and bonsai's 35 and 38 dB targets ran out of encodes)."""
         top, aim = target.value + PSNR_WINDOW, target.value + PSNR_WINDOW / 2
         above = [(psnr, plan, size) for plan, size, psnr in measured if psnr > top]
         below = [(psnr, plan, size) for plan, size, psnr in measured if psnr < target.value]
         cheaper = bool(above)
         if cheaper:
-            start_psnr, start, _ = min(above, key=lambda r: r[2])
+            start_psnr, start, start_size = min(above, key=lambda r: r[2])
             other = max(below, key=lambda r: r[0]) if below else None
+            if other is not None and other[2] >= start_size:  # version 19: no bracket along the chain
+                other = None  # a bigger file of another QP mix fell short: the chain walks on from the start
         else:
             start_psnr, start, _ = max(below, key=lambda r: r[0])
             other = None  # nothing measured above the window
