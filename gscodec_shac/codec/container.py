@@ -15,10 +15,10 @@ Versions. A stream is written with the oldest version that can hold it: 1.0 when
 uses no optional feature (so files that 1.0 decoders read stay byte-identical), else
 the newest version any of its features needs (:data:`FEATURE_VERSIONS`: 2.0, 2.1 for a
 quantised deformation network, 2.2 for one with a bit count per matrix, 2.3 for DC-only
-Gaussians, 2.4 for rotation vectors and shared HEVC parameter sets). Version 2 headers are deflated (zlib; the header length
-and CRC are of the stored bytes) and lists in ``header["features"]`` the sorted names of the features the stream needs
-(see :data:`FEATURES`). A decoder refuses a feature it does not know, naming it, instead
-of decoding the stream wrongly.
+Gaussians, 2.4 for rotation vectors and shared HEVC parameter sets). Version 2 headers are
+deflated (zlib; the header length and CRC are of the stored bytes) and list in
+``header["features"]`` the sorted names of the features the stream needs (see :data:`FEATURES`).
+A decoder refuses a feature it does not know, naming it, instead of decoding the stream wrongly.
 
 Each chunk-table entry is ``{"name", "size", "crc32", ...}`` plus whatever the
 writer records about the chunk (codec name/version/options, plane shape, bit
