@@ -15,25 +15,18 @@ writes one CSV row per encode (docs/rate_control.md, "Controller version 19").
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
 import sys
-from pathlib import Path
 
-import numpy as np
 from tqdm import tqdm
 
-from gscodec_shac.camera import test_split
 from gscodec_shac.codec import rate_control as rc_module
 from gscodec_shac.codec.decoder import Decoder
 from gscodec_shac.codec.encoder import Encoder
 from gscodec_shac.codec.rate_points import ROTATION_FORMS, RatePoint
 from gscodec_shac.errors import GscodecError
-from gscodec_shac.io.cameras import load_cameras
-from gscodec_shac.io.models import read_model
-from gscodec_shac.metrics import psnr
 from gscodec_shac.rd.bd import bd_rate
-from gscodec_shac.render import Renderer
+from held_out_scene import HeldOutScene, add_scene_arguments, write_rows
 
 
 def with_rotation(point: RatePoint, form: str, qp: int, w_offset: int) -> RatePoint:
@@ -46,28 +39,22 @@ def with_rotation(point: RatePoint, form: str, qp: int, w_offset: int) -> RatePo
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("model", help="a 3DGS model (PLY)")
-    parser.add_argument("--cameras", required=True, help="the scene's cameras")
-    parser.add_argument("--test-every", type=int, default=8, help="every N-th camera is held out (1: all are)")
-    parser.add_argument("--background", default="0,0,0", help="R,G,B in [0, 1]")
-    parser.add_argument("--bpg", type=float, default=55.0, help="the plan whose other settings stay fixed")
+    add_scene_arguments(parser, bpg=55.0)
     parser.add_argument("--qps", type=int, nargs="+", default=[2, 6, 10, 14, 18, 22])
     parser.add_argument("--w-offset", type=int, default=12,
                         help="a quaternion's w this many QPs above x, y, z (the template of versions 7-18: 12)")
-    parser.add_argument("--csv", type=Path, help="one row per encode")
     args = parser.parse_args()
     try:
-        background = tuple(float(v) for v in args.background.split(","))
-        cloud, _ = read_model(args.model)
-        train, test = test_split(load_cameras(args.cameras), args.test_every)
-        controller = rc_module.RateController(cloud, views=train or test, background=background, workers=2).fit()
+        scene = HeldOutScene.from_arguments(args)
+        cloud = scene.cloud
+        controller = rc_module.RateController(cloud, views=scene.train, background=scene.background,
+                                              workers=2).fit()
     except (GscodecError, OSError, ValueError) as exc:
         sys.exit(f"error: {exc}")
     settings = controller.encode(rc_module.Target("bytes", args.bpg * cloud.num_gaussians / 8)).plan.settings
     print("plan", settings)
     stage = rc_module.fitted_stage(controller.template, cloud, controller._sh_metric())
-    reference = Renderer(cloud)
-    references = [np.clip(reference.render(v, background=background).image, 0, 1) for v in test]
+    references = scene.references()
     rows = []
     with tqdm(total=len(ROTATION_FORMS) * len(args.qps), desc="rotation forms", unit="encode") as bar:
         for form in ROTATION_FORMS:
@@ -76,22 +63,17 @@ def main() -> None:
                 stream = Encoder(point, sh_stage=stage, fit_stage=False, workers=2,
                                  importance=controller.importance_).encode(cloud)
                 data = stream.to_bytes()
-                decoded = Renderer(Decoder().decode(data))
-                quality = float(np.mean([psnr(np.clip(decoded.render(v, background=background).image, 0, 1), ref)
-                                         for v, ref in zip(test, references)]))
+                quality = scene.mean_psnr(Decoder().decode(data), references)
                 rows.append({"form": form, "qp": qp, "bytes": len(data),
                              "rotation_bytes": stream.attribute_sizes()["rotation"], "psnr_held_out": quality})
                 bar.update(1)
-    if args.csv:
-        with open(args.csv, "w", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
+    write_rows(args.csv, rows)
     quaternion, vector = ([r for r in rows if r["form"] == form] for form in ("quaternion", "vector"))
     for rate in ("bytes", "rotation_bytes"):
         value = bd_rate([r[rate] for r in quaternion], [r["psnr_held_out"] for r in quaternion],
                         [r[rate] for r in vector], [r["psnr_held_out"] for r in vector]).value
         print(f"vector vs quaternion, {rate}: BD-rate {value:+.2f}%")
+
 
 if __name__ == "__main__":
     main()

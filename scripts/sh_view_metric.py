@@ -20,43 +20,28 @@ with ``--time-metric`` it only times the metric the controller computes (docs/be
 from __future__ import annotations
 
 import argparse
-import csv
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
-from gscodec_shac.camera import test_split
 from gscodec_shac.codec import rate_control as rc_module
 from gscodec_shac.codec.decoder import Decoder
 from gscodec_shac.codec.encoder import Encoder
 from gscodec_shac.codec.rate_points import load_rate_point
 from gscodec_shac.errors import GscodecError
-from gscodec_shac.io.cameras import load_cameras
-from gscodec_shac.io.models import read_model
-from gscodec_shac.metrics import psnr
 from gscodec_shac.rd.bd import bd_rate
-from gscodec_shac.render import Renderer
+from held_out_scene import HeldOutScene, add_scene_arguments, write_rows
 from gscodec_shac.shac.view_metric import IDENTITY_SHARE, cloud_view_metric, footprints, view_metric
-
-
-def _mean_psnr(renderer: Renderer, views: list, references: list[np.ndarray], background: tuple) -> float:
-    return float(np.mean([psnr(np.clip(renderer.render(v, background=background).image, 0, 1), ref)
-                          for v, ref in zip(views, references)]))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("model", help="an SH-3 model (PLY)")
-    parser.add_argument("--cameras", required=True, help="the scene's cameras (the metric needs them)")
-    parser.add_argument("--test-every", type=int, default=8, help="every N-th camera is held out (1: all are)")
-    parser.add_argument("--background", default="0,0,0", help="R,G,B in [0, 1]")
-    parser.add_argument("--bpg", type=float, default=75.0, help="the plan whose other settings stay fixed")
+    add_scene_arguments(parser, bpg=75.0, model="an SH-3 model (PLY)",
+                        cameras="the scene's cameras (the metric needs them)")
     parser.add_argument("--bases", type=float, nargs="+", default=[8, 12, 16, 20, 24, 28, 32])
-    parser.add_argument("--csv", type=Path, help="one row per encode")
     parser.add_argument("--identity-share", type=float, default=IDENTITY_SHARE,
                         help=f"the identity's share in the metrics (default {IDENTITY_SHARE})")
     parser.add_argument("--ladder", type=float, metavar="ER",
@@ -65,10 +50,8 @@ def main() -> None:
                         help="only time the controller's metric of the training cameras (median of 5) and stop")
     args = parser.parse_args()
     try:
-        background = tuple(float(v) for v in args.background.split(","))
-        cloud, _ = read_model(args.model)
-        train, test = test_split(load_cameras(args.cameras), args.test_every)
-        train = train or test
+        scene = HeldOutScene.from_arguments(args)
+        cloud, train, background = scene.cloud, scene.train, scene.background
         if args.time_metric:
             seconds = []
             for _ in range(5):
@@ -89,8 +72,7 @@ def main() -> None:
     else:
         steps = [(index, load_rate_point(f"shac_ladder:rp{index}").with_overrides(
             sh_stage="pca", sh_params={"energy_retention": args.ladder})) for index in range(1, 10)]
-    reference = Renderer(cloud)
-    references = [np.clip(reference.render(v, background=background).image, 0, 1) for v in test]
+    references = scene.references()
     weights = footprints(cloud.scales, cloud.activated_opacities())
     metrics = {
         "paper": None,
@@ -112,18 +94,14 @@ def main() -> None:
                 stream = encoder.encode(cloud)
                 sizes = stream.attribute_sizes()
                 data = stream.to_bytes()
-                decoded = Renderer(Decoder().decode(data))
+                decoded = Decoder().decode(data)
                 step = "base" if args.ladder is None else "rate_point"
                 rows.append({"variant": name, step: base, "bytes": len(data),
                              "sh_bytes": sizes.get("sh", 0) + sizes.get("sh_state", 0),
-                             "psnr_held_out": _mean_psnr(decoded, test, references, background),
+                             "psnr_held_out": scene.mean_psnr(decoded, references),
                              "psnr_controller_views": controller.measured_psnr(stream)})
                 bar.update(1)
-    if args.csv:
-        with open(args.csv, "w", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
+    write_rows(args.csv, rows)
     paper = [r for r in rows if r["variant"] == "paper"]
     for name in list(metrics)[1:]:
         other = [r for r in rows if r["variant"] == name]
