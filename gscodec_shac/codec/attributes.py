@@ -68,7 +68,7 @@ ATTRIBUTES: dict[str, Attribute] = {
     )
 }
 #: The forms a rate point may code the rotation in (``attributes.rotation.form``). A rotation vector
-#: (``angle * axis``) is three numbers where the quaternion takes four: 12-16% fewer rotation bytes at
+#: (``angle * axis``) is three numbers where the quaternion takes four: 13-15% fewer rotation bytes at
 #: the same rendered PSNR on bonsai and the chair (docs/rate_control.md, "Controller version 19").
 ROTATION_FORMS: dict[str, Attribute] = {
     "quaternion": ATTRIBUTES["rotation"],
