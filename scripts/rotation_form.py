@@ -21,9 +21,10 @@ import sys
 from tqdm import tqdm
 
 from gscodec_shac.codec import rate_control as rc_module
+from gscodec_shac.codec.attributes import ROTATION_FORMS
 from gscodec_shac.codec.decoder import Decoder
 from gscodec_shac.codec.encoder import Encoder
-from gscodec_shac.codec.rate_points import ROTATION_FORMS, RatePoint
+from gscodec_shac.codec.rate_points import RatePoint
 from gscodec_shac.errors import GscodecError
 from gscodec_shac.rd.bd import bd_rate
 from held_out_scene import HeldOutScene, add_scene_arguments, write_rows

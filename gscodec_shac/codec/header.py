@@ -19,8 +19,12 @@ got -1``). What is checked, before anything is decoded or allocated:
   ``sh_dc_only`` of one bit per Gaussian and the SH planes' own grid ``sh.grid`` (shape against
   the coded Gaussians, padding ``tail`` or ``zorder``); :func:`read_dc_only` checks the flags
   against the count;
-* zlib chunks (``grid_mask``, ``sh_state``, ``sh_dc_only``): the declared inflated size against its
-  limit and against what deflate can produce from the stored bytes (at most 1032:1);
+* zlib chunks (``grid_mask``, ``sh_state``, ``sh_dc_only``, ``hevc_parameter_sets``): the declared
+  inflated size against its limit and against what deflate can produce from the stored bytes (at
+  most 1032:1);
+* HEVC parameter sets stored once (feature ``hevc_parameter_sets``): the feature, the table chunk
+  (its entry count ``sets``) and every hevc chunk's ``parameter_sets`` indices (each below ``sets``)
+  come together; the stream count of a chunk is checked when it is decoded;
 * dynamic models (feature ``deformation``): the ``deformation`` header entry (architecture
   within :mod:`gscodec_shac.deform_arch`'s bounds, dtype float16, or uint8 with 2..8 bits and
   the feature ``deformation_quantised``, the bits a list of one per matrix exactly with the

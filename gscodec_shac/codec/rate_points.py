@@ -63,6 +63,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from gscodec_shac.codec.allocation import BASE_QP_STEP
+from gscodec_shac.codec.attributes import ROTATION_FORMS
 from gscodec_shac.codec.grid.base import CODECS
 from gscodec_shac.errors import RatePointError
 from gscodec_shac.shac.base import STAGES, ShStage
@@ -81,8 +82,7 @@ QP_RANGE = (0, 51)
 _FILE_KEYS = {"description", "source", "defaults", "points"}
 _POINT_KEYS = {"description", "codec", "codec_options", "bits", "color", "qp", "attributes", "sh", "sort", "prune"}
 _ATTRIBUTE_KEYS = {"codec", "codec_options", "bits", "qp", "layout", "allocation", "form"}
-#: How the rotation may be coded (``attributes.rotation.form``; codec/attributes.py ``ROTATION_FORMS``).
-ROTATION_FORMS = ("quaternion", "vector")
+
 #: How an SH attribute's features share out QPs: ``degree`` (the QP ladder by SH degree) or
 #: ``waterfill`` (reverse water-filling: one QP per feature from the stage's feature weights).
 ALLOCATIONS = ("degree", "waterfill")
@@ -388,7 +388,7 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
             raise where.error(f"attributes.{name}.layout", "only positions can be coded as a set")
         if name in LOSSLESS_ATTRIBUTES and qp is not None:
             raise where.error(qp_key, f"{name} are coded losslessly; remove the QP")
-        form = where.choice(over.get("form", "quaternion"), ROTATION_FORMS, f"attributes.{name}.form")
+        form = where.choice(over.get("form", "quaternion"), tuple(ROTATION_FORMS), f"attributes.{name}.form")
         if form != "quaternion" and name != "rotation":
             raise where.error(f"attributes.{name}.form", "only the rotation has a form")
         if form == "vector" and isinstance(qp, tuple):
