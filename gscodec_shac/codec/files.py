@@ -102,7 +102,7 @@ def encode_file(
     encoder = Encoder(point, sh_stage=sh, sort=sort, seed=seed,
                       sh_params={k: v for k, v in stage_params.items() if v is not None},
                       codec_options=_codec_options(preset, analysis), progress=progress, views=views)
-    weighed_by = _view_metric(encoder, cloud, given, notes)
+    weighed_by = _view_metric(encoder, cloud, given, notes, measures_importance=views is not None)
     n_input, sh_degree = cloud.num_gaussians, cloud.sh_degree
     means = cloud.means if dynamic is not None else None  # the network's rounding is fitted on them
     stream = encoder.encode(cloud, release_input=True)  # the model is freed once read (memory, issue 25)
@@ -134,15 +134,17 @@ def encode_file(
     }
 
 
-def _view_metric(encoder: Encoder, cloud: Any, cameras: list | None, notes: list[str]) -> int | None:
+def _view_metric(encoder: Encoder, cloud: Any, cameras: list | None, notes: list[str], *,
+                 measures_importance: bool) -> int | None:
     """With the caller's ``cameras`` and a SHAC-PCA stage that takes one, set the encoder's SH view metric
     (:mod:`gscodec_shac.shac.view_metric`: the SH coefficients weighed by the directions the cameras see
-    the Gaussians from; the paper's rank, another basis); returns how many cameras it counts."""
+    the Gaussians from; the paper's rank, another basis); returns how many cameras it counts. When the
+    metric does not apply, a note says the cameras went unused, unless importance is measured from them."""
     if not cameras:
         return None
     point = encoder.rate_point
     if cloud.sh_degree == 0 or not metric_applies(point.sh_stage, point.sh_params):
-        if point.keep_share >= 1.0 and not (point.dc_only and point.dc_only_weight == "render"):
+        if not measures_importance:
             why = "the model has no view-dependent colour (SH degree 0)" if cloud.sh_degree == 0 else \
                 f"the SH stage {point.sh_stage!r} does not weigh the SH by the views (SHAC-PCA over R, G and B does)"
             notes.append(f"the cameras are not used: {why}")
