@@ -67,21 +67,19 @@ def _streams(data: bytes) -> list[bytes]:
 def share(stream: Bitstream, hevc_codecs: set[int]) -> None:
     """Move the leading parameter sets of the streams of every chunk coded by a codec of
     ``hevc_codecs`` (indices into the codec table) into one table chunk; needs :data:`FEATURE`."""
-    table: list[bytes] = []
+    table: dict[bytes, int] = {}  # each distinct run of parameter sets -> its index, in order of appearance
     for chunk in stream.chunks:
         if chunk.meta.get("codec") not in hevc_codecs or "shape" not in chunk.meta:
             continue
         kept, indices = [], []
         for piece in _streams(chunk.data):
             end = parameter_sets_end(piece)
-            if piece[:end] not in table:
-                table.append(piece[:end])
-            indices.append(table.index(piece[:end]))
+            indices.append(table.setdefault(piece[:end], len(table)))
             kept.append(piece[end:])
         chunk.data = chunk.data[:HEAD_BYTES] + join_chunks(kept)
         chunk.meta[META_KEY] = indices
     if table:
-        raw = join_chunks(table)
+        raw = join_chunks(list(table))
         stream.add_chunk(CHUNK, zlib.compress(raw, 9), attribute=CHUNK, encoding="zlib", raw_size=len(raw),
                          sets=len(table))
         stream.require(FEATURE)
