@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from gscodec_shac.render.key_sort import sort_depth_keys
 from gscodec_shac.render.projection import BLOCK, NO_KEY, P_A, P_B, P_C, P_DETC, P_HX, P_HY, P_TAU, P_X, P_Y
 
 
@@ -157,14 +158,15 @@ def bin_gaussians(
     keys: np.ndarray, pack_in: np.ndarray, rects_in: np.ndarray, width: int, height: int,
     order: np.ndarray, pack: np.ndarray, rects: np.ndarray,
 ) -> TileBins:
-    """Sort by ``keys`` (see :func:`projection.project_into`), gather rows, build tile lists.
+    """Sort by ``keys`` (see :func:`projection.project_into`; :func:`.key_sort.sort_depth_keys`), gather rows,
+    build tile lists.
 
     ``keys`` is sorted in place; ``order``, ``pack`` and ``rects`` are output buffers with at
     least as many rows as there are contributing Gaussians (views of them are returned).
     """
     tiles_x = (width + BLOCK - 1) // BLOCK
     tiles_y = (height + BLOCK - 1) // BLOCK
-    keys.sort()
+    sort_depth_keys(keys)
     count = int(np.searchsorted(keys, NO_KEY))
     order, pack, rects = order[:count], pack[:count], rects[:count]
     _gather_kernel(keys, pack_in, rects_in, order, pack, rects)
