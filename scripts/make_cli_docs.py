@@ -75,9 +75,9 @@ conventions hold for all of them:
   `--target-size`/`--target-bpg` above the largest file the controller makes prints a note and
   writes that file; an SH stage asked for on an SH-0 model prints that it is a no-op; the
   ladder spans about 30-310 bits per Gaussian on bonsai (docs/rate_control.md). `--target-psnr`
-  keeps the smallest file its at most six encodes found at or above the target, so it can
-  overshoot: 14 of the 15 targets at 35-47 dB on bonsai, the chair and snowmiku land within +0.3 dB,
-  bonsai's 38 dB at 38.75 dB (docs/rate_control.md, "Controller version 19"). Orbit views (no
+  keeps the smallest file its at most eight encodes found at or above the target, so it can
+  overshoot: all 15 targets at 35-47 dB on bonsai, the chair and snowmiku land within +0.3 dB
+  (docs/rate_control.md, "Controller version 20"). Orbit views (no
   `--cameras`) stand outside the model's dense part: the radius grows until its bounding sphere
   fits the view; `--up` stays the user's axis (default +Z, below).
 

@@ -15,6 +15,7 @@ from gscodec_shac.codec.allocation import MAX_QP, waterfill_qps
 from gscodec_shac.codec.importance import keep_count
 from gscodec_shac.codec.rate_control import (
     IMPORTANCE_SHARES,
+    MAX_ENCODES,
     PSNR_WINDOW,
     SIZE_TOLERANCE,
     VISIBILITY_BOUNDS,
@@ -257,6 +258,20 @@ def test_a_bigger_encode_below_the_target_does_not_bound_the_chain(controller):
     smaller_below = (controller._step(start, cheaper=True), size - 1000, target.value - 0.3)
     bracketed = controller._next_for_quality(target, [above, smaller_below], tried | {_key(smaller_below[0])})
     assert bracketed != alone  # a consistent bracket still bounds and scales the chain
+
+
+def test_a_target_stops_at_its_encode_cap_and_keeps_the_smallest_file_that_met_it(controller, monkeypatch):
+    """At most ``max_encodes`` encodes per target (version 20: :data:`MAX_ENCODES`, 8; 6 before); when they
+    run out, the smallest file that met the target is kept."""
+    target = Target("psnr", 40.0)
+    assert controller.max_encodes == MAX_ENCODES
+    assert controller.encode(target).encodes > 2, "this target must need more than the cap below"
+    monkeypatch.setattr(controller, "max_encodes", 2)
+    outcome = controller.encode(target)
+    trials = outcome.summary()["trials"]
+    assert outcome.encodes == len(trials) == 2
+    assert outcome.measured_psnr >= target.value
+    assert len(outcome.stream.to_bytes()) == min(t["bytes"] for t in trials if t["measured_psnr"] >= target.value)
 
 
 def test_unreachable_targets_name_the_reachable_limit(controller):
