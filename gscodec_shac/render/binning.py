@@ -38,6 +38,7 @@ class TileBins:
     tiles_x: int
     tiles_y: int
     n_touching: int  # entries listed in at least one tile
+    keys: np.ndarray | None = None  # (V,) uint64 sort keys of the depth-sorted entries (a view of the sorted keys)
 
     @property
     def n_pairs(self) -> int:
@@ -173,4 +174,5 @@ def bin_gaussians(
     n_chunks = max(1, min(4 * numba.get_num_threads(), count // 4096 + 1))
     touched = np.zeros(count, dtype=np.bool_)
     tile_start, ids = _bin_kernel(pack, rects, width, height, tiles_x, tiles_y, n_chunks, touched)
-    return TileBins(order, pack, rects, tile_start, ids, tiles_x, tiles_y, int(np.count_nonzero(touched)))
+    return TileBins(order, pack, rects, tile_start, ids, tiles_x, tiles_y, int(np.count_nonzero(touched)),
+                    keys[:count])

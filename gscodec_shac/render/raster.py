@@ -225,9 +225,11 @@ def _deal(cost, workers):  # pragma: no cover - compiled
     return owner
 
 
-def tile_schedule(tile_start: np.ndarray, workers: int) -> tuple[np.ndarray, np.ndarray]:
+def tile_schedule(tile_start: np.ndarray, workers: int,
+                  only: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(tiles, worker_start)``: the tiles dealt to ``workers`` threads, worker ``w`` blending
-    ``tiles[worker_start[w]:worker_start[w + 1]]`` in increasing order (neighbours share Gaussians).
+    ``tiles[worker_start[w]:worker_start[w + 1]]`` in increasing order (neighbours share Gaussians);
+    ``only``: the tiles to blend (ascending), else every tile.
 
     The blend's parallel loop runs over the workers, one per thread: numba splits a loop's range
     into equal runs of iterations, so a loop over the tiles themselves left one thread the dense
@@ -236,20 +238,23 @@ def tile_schedule(tile_start: np.ndarray, workers: int) -> tuple[np.ndarray, np.
     is blended alone, so the pixels do not depend on the schedule.
     """
     cost = np.diff(tile_start).astype(np.float64) + TILE_COST
-    workers = max(1, min(int(workers), cost.shape[0]))
+    chosen = np.arange(cost.shape[0]) if only is None else np.asarray(only, dtype=np.int64)
+    cost = cost[chosen]
+    workers = max(1, min(int(workers), max(1, cost.shape[0])))
     owner = _deal(cost, workers)
-    tiles = np.argsort(owner, kind="stable")
+    tiles = chosen[np.argsort(owner, kind="stable")]
     worker_start = np.zeros(workers + 1, dtype=np.int64)
     np.cumsum(np.bincount(owner, minlength=workers), out=worker_start[1:])
     return tiles, worker_start
 
 
-def _run(mode: int, bins: TileBins, width: int, height: int, **arrays: np.ndarray) -> None:
+def _run(mode: int, bins: TileBins, width: int, height: int, only: np.ndarray | None = None,
+         **arrays: np.ndarray) -> None:
     npix = width * height
     empty_f = np.zeros(0)
     empty_i32 = np.zeros(0, dtype=np.int32)
     empty_i64 = np.zeros(0, dtype=np.int64)
-    tiles, worker_start = tile_schedule(bins.tile_start, numba.get_num_threads())
+    tiles, worker_start = tile_schedule(bins.tile_start, numba.get_num_threads(), only)
     _raster_kernel(
         mode, bins.tile_start, bins.ids, bins.pack, bins.order, width, height, bins.tiles_x, tiles, worker_start,
         arrays.get("color", np.zeros((0, 3))), arrays.get("trans", np.zeros(npix)),
@@ -259,13 +264,15 @@ def _run(mode: int, bins: TileBins, width: int, height: int, **arrays: np.ndarra
 
 
 def rasterize(
-    bins: TileBins, width: int, height: int, buffers: dict[str, np.ndarray] | None = None
+    bins: TileBins, width: int, height: int, buffers: dict[str, np.ndarray] | None = None,
+    only: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``(colour (H*W, 3), transmittance (H*W,), weighted depth sum (H*W,), last contributor (H*W,))``.
 
     The colour excludes the background term ``T * background``; ``last`` is the reference's
     per-pixel count of list entries up to the last one that contributed (for a backward pass).
-    ``buffers`` (keys color, trans, depth, last) are reused when given.
+    ``buffers`` (keys color, trans, depth, last) are reused when given. ``only``: blend these tiles
+    (ascending), the other pixels are left as they were in the buffers.
     """
     npix = width * height
     buffers = buffers if buffers is not None else {}
@@ -275,7 +282,7 @@ def rasterize(
         trans, depth, last = np.empty(npix), np.empty(npix), np.empty(npix, dtype=np.int32)
     else:
         trans, depth, last = buffers["trans"], buffers["depth"], buffers["last"]
-    _run(MODE_IMAGE, bins, width, height, color=color, trans=trans, depth=depth, last=last)
+    _run(MODE_IMAGE, bins, width, height, only, color=color, trans=trans, depth=depth, last=last)
     return color, trans, depth, last
 
 

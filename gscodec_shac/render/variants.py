@@ -42,6 +42,7 @@ class FrameVariants:
         self.background = parse_background(background)
         self.frame: Frame = renderer.prepare(camera)
         self._pair_rows: np.ndarray | None = None  # the cloud's row of each tile-list entry
+        self._pack: np.ndarray | None = None  # the frame's parameter rows, then a moved part's (:meth:`moved`)
 
     def image(self) -> np.ndarray:
         """(H, W, 3) float32: the cloud's own image (as :meth:`Renderer.render`)."""
@@ -55,6 +56,24 @@ class FrameVariants:
         """The image of the cloud with the SH coefficients of ``rows`` replaced by ``sh_dc`` (len(rows), 3)
         and ``sh_rest`` (len(rows), K, 3), in the order of ``rows``."""
         return self.variant(rows=rows, sh_dc=sh_dc, sh_rest=sh_rest)
+
+    def moved(self, rows: np.ndarray, part: Renderer, reference: np.ndarray | None = None) -> np.ndarray:
+        """The image of the cloud with its ``rows`` (ascending) replaced by the Gaussians of ``part`` (a
+        renderer of ``len(rows)`` Gaussians in that order: new means, shapes, opacities or colours);
+        only the tiles they touch blend again (:mod:`.moved`). ``reference``: :meth:`image`, when known."""
+        from gscodec_shac.render.moved import moved_image
+
+        return moved_image(self, rows, part, self.image() if reference is None else reference)
+
+    def pack_with(self, part_pack: np.ndarray) -> np.ndarray:
+        """The frame's depth-sorted parameter rows followed by ``part_pack``'s (one buffer, kept)."""
+        own = self.frame.bins.pack
+        rows = own.shape[0] + part_pack.shape[0]
+        if self._pack is None or self._pack.shape[0] < rows:
+            self._pack = np.empty((own.shape[0] + max(part_pack.shape[0], own.shape[0] // 8 + 1), own.shape[1]))
+            self._pack[: own.shape[0]] = own
+        self._pack[own.shape[0]:rows] = part_pack
+        return self._pack[:rows]
 
     def variant(self, keep: np.ndarray | None = None, rows: np.ndarray | None = None,
                 sh_dc: np.ndarray | None = None, sh_rest: np.ndarray | None = None) -> np.ndarray:

@@ -1,0 +1,74 @@
+"""A cloud with a few rows moved, rendered from the cloud's prepared frame (gscodec_shac.render.moved):
+the same images as fresh renders, bit for bit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gscodec_shac.render import Renderer
+from gscodec_shac.render.variants import FrameVariants
+from gscodec_shac.synthetic import make_synthetic_scene
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_synthetic_scene(3_000, seed=7, n_cameras=3, width=80, height=60)
+
+
+def _moved(cloud, rows, rng, what):
+    """``cloud`` with ``what`` of its ``rows`` changed (as a decoded attribute would be)."""
+    changes = {}
+    if "means" in what:
+        changes["means"] = cloud.means.copy()
+        changes["means"][rows] += rng.normal(0.0, 0.05, (rows.size, 3)).astype(np.float32)
+    if "scales" in what:
+        changes["scales"] = cloud.scales.copy()
+        changes["scales"][rows] += rng.normal(0.0, 0.3, (rows.size, 3)).astype(np.float32)
+    if "quats" in what:
+        changes["quats"] = cloud.quats.copy()
+        changes["quats"][rows] += rng.normal(0.0, 0.2, (rows.size, 4)).astype(np.float32)
+    if "opacities" in what:
+        changes["opacities"] = cloud.opacities.copy()
+        changes["opacities"][rows] += rng.normal(0.0, 1.5, rows.size).astype(np.float32)
+    return cloud.replace(**changes)
+
+
+@pytest.mark.parametrize("what", [("scales",), ("quats",), ("opacities",), ("means", "scales", "quats", "opacities")])
+@pytest.mark.parametrize("share", [0.0, 0.02, 0.3, 1.0])
+def test_moved_rows_render_as_a_fresh_renderer(scene, what, share):
+    rng = np.random.default_rng(3)
+    cloud = scene.cloud
+    rows = np.flatnonzero(rng.random(cloud.num_gaussians) < share)
+    moved = _moved(cloud, rows, rng, what)
+    part = Renderer(moved.select(rows))
+    renderer = Renderer(cloud)
+    for background in ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)):
+        for camera in scene.cameras:
+            variants = FrameVariants(renderer, camera, background)
+            image = variants.moved(rows, part)
+            fresh = Renderer(moved).render(camera, background=background).image
+            assert np.array_equal(image, fresh)
+
+
+def test_a_run_of_rows_moves_only_the_tiles_it_touches(scene):
+    """A run along the cloud (as the rate controller's probe is) changes a part of the image only,
+    and the rest is the cloud's own image."""
+    rng = np.random.default_rng(5)
+    cloud = scene.cloud
+    rows = np.arange(1000, 1100)
+    moved = _moved(cloud, rows, rng, ("scales", "quats"))
+    camera = scene.cameras[0]
+    variants = FrameVariants(Renderer(cloud), camera)
+    reference = variants.image()
+    image = variants.moved(rows, Renderer(moved.select(rows)), reference)
+    assert np.array_equal(image, Renderer(moved).render(camera).image)
+    changed = np.any(image != reference, axis=2)
+    assert 0 < np.count_nonzero(changed) < changed.size
+
+
+def test_the_part_must_hold_one_gaussian_per_row(scene):
+    cloud = scene.cloud
+    variants = FrameVariants(Renderer(cloud), scene.cameras[0])
+    with pytest.raises(ValueError, match="moved Gaussians"):
+        variants.moved(np.arange(10), Renderer(cloud.select(np.arange(5))))
