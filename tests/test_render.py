@@ -341,7 +341,7 @@ def test_blend_schedule_deals_every_tile_once_and_gives_the_same_pixels_for_any_
     outputs = []
     schedule = raster.tile_schedule
     for workers in (1, 2, 3, 8):
-        monkeypatch.setattr(raster, "tile_schedule", lambda start, threads, workers=workers: schedule(start, workers))
+        monkeypatch.setattr(raster, "tile_schedule", lambda start, threads, only=None, workers=workers: schedule(start, workers, only))
         renderer = Renderer(cloud)
         weights, trans = renderer.weights(camera)
         outputs.append((renderer.render(camera, background=(0.3, 0.1, 0.7)).image, weights.toarray(), trans,

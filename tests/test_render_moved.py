@@ -67,8 +67,20 @@ def test_a_run_of_rows_moves_only_the_tiles_it_touches(scene):
     assert 0 < np.count_nonzero(changed) < changed.size
 
 
-def test_the_part_must_hold_one_gaussian_per_row(scene):
+def test_the_part_must_hold_one_gaussian_per_row_in_row_order(scene):
     cloud = scene.cloud
     variants = FrameVariants(Renderer(cloud), scene.cameras[0])
     with pytest.raises(ValueError, match="moved Gaussians"):
         variants.moved(np.arange(10), Renderer(cloud.select(np.arange(5))))
+    with pytest.raises(ValueError, match="ascending"):
+        variants.moved(np.array([3, 1, 2]), Renderer(cloud.select(np.array([3, 1, 2]))))
+
+
+def test_a_schedule_of_some_tiles_deals_each_of_them_once():
+    from gscodec_shac.render import raster
+
+    lengths = np.array([0, 500, 3, 3, 900, 0, 40, 41, 7, 600])
+    tile_start = np.concatenate([[0], np.cumsum(lengths)])
+    for only in (np.array([1, 4, 9]), np.array([5]), np.array([], dtype=np.int64)):
+        tiles, worker_start = raster.tile_schedule(tile_start, 2, only)
+        assert np.array_equal(np.sort(tiles), only) and worker_start[-1] == only.size

@@ -479,18 +479,23 @@ class RateController:
             if name in errors:
                 variant = _with_decoded(probe, name, np.arange(rows.size), decoded)
                 recolours[name] = (variant.sh_dc, variant.sh_rest)
+        # the other attributes move the probe's Gaussians: only the tiles those touch blend again
+        moved = self._moved_parts(probe, rows, decoded, [name for name in errors if name not in recolours]) \
+            if rows.size < self.cloud.num_gaussians else {}
         probe = variant = None
         zeroings = self._zeroings(candidates, errors)
         no_ac = np.zeros((max((z.size for _, z in zeroings.values()), default=0), *self.cloud.sh_rest.shape[1:]),
                          dtype=self.cloud.sh_rest.dtype)
         self._references = []
-        per_view: dict[Any, list] = {key: [] for key in [*recolours, *range(len(candidates)), *zeroings]}
+        per_view: dict[Any, list] = {key: [] for key in [*recolours, *moved, *range(len(candidates)), *zeroings]}
         for view in self.views:
             frame = FrameVariants(renderer, view, self.background)
             reference = frame.image()
             self._references.append(reference)
             for name, (sh_dc, sh_rest) in recolours.items():
                 per_view[name].append(np.mean((frame.recoloured(rows, sh_dc, sh_rest) - reference) ** 2))
+            for name, (ascending, part) in moved.items():
+                per_view[name].append(np.mean((frame.moved(ascending, part, reference) - reference) ** 2))
             for index, (_, keep) in enumerate(candidates):
                 per_view[index].append(np.mean((frame.subset(keep) - reference) ** 2))
             for key, (keep, zero) in zeroings.items():
@@ -505,8 +510,22 @@ class RateController:
             (settings, int(np.count_nonzero(keep)) / n, float(np.mean(per_view[i])))
             for i, (settings, keep) in enumerate(candidates)]
         self._prune_masks = [None] + [keep for _, keep in candidates]
-        self.rendered_mse_ = {name: float(np.mean(per_view[name])) for name in recolours}
+        self.rendered_mse_ = {name: float(np.mean(per_view[name])) for name in [*recolours, *moved]}
         return self._sensitivities(errors, self.rendered_mse_, bar)
+
+    @staticmethod
+    def _moved_parts(probe: GaussianCloud, rows: np.ndarray, decoded: GaussianCloud,
+                     names: Sequence[str]) -> dict[str, tuple[np.ndarray, Any]]:
+        """Per attribute of ``names``: the probe's ``rows`` in ascending order and a renderer of the probe's
+        Gaussians in that order with that attribute as ``decoded`` (row for row with ``rows``), for
+        :meth:`~gscodec_shac.render.variants.FrameVariants.moved` (the same images as renders of the whole
+        cloud with those rows replaced, :meth:`_rendered_with_decoded`)."""
+        from gscodec_shac.render import Renderer
+
+        ascending = np.argsort(rows, kind="stable")
+        everything = np.arange(rows.size)
+        return {name: (rows[ascending], Renderer(_with_decoded(probe, name, everything, decoded).select(ascending)))
+                for name in names}
 
     def _dc_only_applies(self, names: Any) -> bool:
         """Whether the DC-only bars are a choice: an SH attribute among ``names`` whose stage codes the DC

@@ -82,6 +82,8 @@ def moved_image(variants: "FrameVariants", rows: np.ndarray, part: "Renderer", r
     rows = np.asarray(rows, dtype=np.int64)
     if part.num_gaussians != rows.size:
         raise ValueError(f"{part.num_gaussians} moved Gaussians for {rows.size} rows")
+    if rows.size > 1 and not np.all(np.diff(rows) > 0):  # the keys' ties go by row, as in a whole render
+        raise ValueError("the moved rows must be ascending")
     moved_row = np.zeros(renderer.num_gaussians, dtype=np.bool_)
     moved_row[rows] = True
     entry_moved = moved_row[bins.order]
