@@ -134,3 +134,14 @@ def test_importance_from_a_given_renderer_is_the_same(small_scene):
     assert np.array_equal(gaussian_importance(cloud, views, renderer=renderer), gaussian_importance(cloud, views))
     with pytest.raises(ValidationError, match="another cloud"):
         gaussian_importance(cloud.select(np.arange(10)), views, renderer=renderer)
+
+
+def test_the_most_important_rows_for_several_counts_are_those_of_one_count_at_a_time():
+    from gscodec_shac.codec.importance import most_important, most_important_counts
+
+    rng = np.random.default_rng(4)
+    importance = np.round(rng.random(2_000), 2)  # ties
+    counts = [1_600, 1_200, 900, 2_000, 2_500, 1]
+    everything = np.arange(importance.size)
+    for rows, count in zip(most_important_counts(importance, counts), counts):
+        assert np.array_equal(rows, most_important(importance, everything, count))

@@ -73,6 +73,12 @@ def most_important(importance: np.ndarray, rows: np.ndarray, count: int) -> np.n
     return np.sort(ranked[:count])
 
 
+def most_important_counts(importance: np.ndarray, counts: list[int]) -> list[np.ndarray]:
+    """``most_important(importance, all rows, count)`` for each of ``counts``, the rows ranked once."""
+    ranked = np.argsort(-importance, kind="stable") if counts else None
+    return [np.arange(importance.size) if count >= importance.size else np.sort(ranked[:count]) for count in counts]
+
+
 def keep_count(n: int, keep_share: float) -> int:
     """Gaussians kept of ``n`` at ``keep_share`` (at least one)."""
     return max(1, int(round(keep_share * n)))

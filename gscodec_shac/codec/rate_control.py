@@ -69,7 +69,8 @@ from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.decoder import Decoder
 from gscodec_shac.codec.effort import with_scene_analysis
 from gscodec_shac.codec.encoder import Encoder, position_set_cache_key
-from gscodec_shac.codec.importance import gaussian_importance, importance_views, keep_count, most_important
+from gscodec_shac.codec.importance import (gaussian_importance, importance_views, keep_count,
+                                           most_important_counts)
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode, set_order
 from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
 from gscodec_shac.codec.rate_sh_degree import (DC_ONLY_BARS, RATIO_QPS, DcOnlyChoice, cloud_energy, fit_choices,
@@ -449,8 +450,8 @@ class RateController:
                 out.append((_prune(min_opacity=threshold), keep))
         if self.importance_shares:
             self.importance_ = gaussian_importance(self.cloud, self.importance_views, renderer=renderer)
-        for share in self.importance_shares:
-            rows = most_important(self.importance_, np.arange(n), keep_count(n, share))
+        counts = [keep_count(n, share) for share in self.importance_shares]
+        for share, rows in zip(self.importance_shares, most_important_counts(self.importance_, counts)):
             if rows.size < n:
                 keep = np.zeros(n, dtype=np.bool_)
                 keep[rows] = True
@@ -540,9 +541,11 @@ class RateController:
         if not self._dc_only_applies(names):
             return {}
         energy = cloud_energy(self.cloud)
+        order = np.argsort(energy, kind="stable")  # once for every pruning choice
         kept = [None] + [keep for _, keep in candidates]
         everything = np.arange(self.cloud.num_gaussians)
-        return {(value, j): (keep, kept_flags(energy, everything if keep is None else np.flatnonzero(keep), value))
+        return {(value, j): (keep, kept_flags(energy, everything if keep is None else np.flatnonzero(keep), value,
+                                              order))
                 for value in DC_ONLY_BARS if value > 0 for j, keep in enumerate(kept)}
 
     def _dc_only_probe_sizes(self, rows: np.ndarray, rates: dict[str, np.ndarray]

@@ -55,14 +55,20 @@ def dc_only_flags(energy: np.ndarray, share: float, bar: float = 0.0) -> np.ndar
     ``bar`` times the total."""
     n = energy.size
     order = np.argsort(energy, kind="stable")
-    if bar > 0:
-        dropped = np.cumsum(energy[order])
-        count = int(np.searchsorted(dropped, bar * dropped[-1], side="right")) if n else 0
-    else:
-        count = int(round(share * n))
+    count = bar_count(energy[order], bar) if bar > 0 else min(int(round(share * n)), n - 1)
     flags = np.zeros(n, dtype=bool)
-    flags[order[: min(count, n - 1)]] = True
+    flags[order[:count]] = True
     return flags
+
+
+def bar_count(ascending_energy: np.ndarray, bar: float) -> int:
+    """How many of the rows whose energies are ``ascending_energy`` (sorted) keep their DC only under
+    ``bar``: the most whose summed energy is at most ``bar`` times the total, never all of them."""
+    n = ascending_energy.size
+    if n == 0:
+        return 0
+    dropped = np.cumsum(ascending_energy)
+    return min(int(np.searchsorted(dropped, bar * dropped[-1], side="right")), n - 1)
 
 
 def sh_padding(grid_padding: str) -> str:
