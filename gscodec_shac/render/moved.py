@@ -12,7 +12,7 @@ bit (tests/test_render_moved.py), at the cost of a render of the moved rows and 
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import numba
 import numpy as np
@@ -22,8 +22,8 @@ from gscodec_shac.render.projection import BLOCK
 from gscodec_shac.render.raster import rasterize
 
 if TYPE_CHECKING:
+    from gscodec_shac.camera import Camera
     from gscodec_shac.render.renderer import Renderer
-    from gscodec_shac.render.variants import FrameVariants
 
 _LOW = np.uint64(0xFFFFFFFF)
 
@@ -73,18 +73,18 @@ def _merge_lists(tiles, f_start, f_ids, f_keys, f_moved, p_start, p_ids, p_keys,
     return start, ids
 
 
-def moved_image(variants: "FrameVariants", rows: np.ndarray, part: "Renderer", reference: np.ndarray) -> np.ndarray:
-    """(H, W, 3) float32: the image of ``variants``' cloud with its ``rows`` (ascending) replaced by
-    ``part``'s Gaussians (a renderer of as many, in the order of ``rows``); ``reference``: the
-    cloud's own image (:meth:`FrameVariants.image`)."""
-    renderer, camera, frame = variants.renderer, variants.camera, variants.frame
-    bins = frame.bins
+def moved_image(bins: TileBins, num_rows: int, camera: "Camera", background: np.ndarray, reference: np.ndarray,
+                rows: np.ndarray, part: "Renderer", pack_with: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """(H, W, 3) float32: the image of a cloud of ``num_rows`` Gaussians, prepared for ``camera`` as
+    ``bins`` (its image over ``background``: ``reference``), with its ``rows`` (ascending) replaced by
+    ``part``'s Gaussians (a renderer of as many, in the order of ``rows``); ``pack_with(part_pack)``: the
+    frame's parameter rows followed by ``part_pack``'s (:meth:`.variants.FrameVariants.pack_with`)."""
     rows = np.asarray(rows, dtype=np.int64)
     if part.num_gaussians != rows.size:
         raise ValueError(f"{part.num_gaussians} moved Gaussians for {rows.size} rows")
     if rows.size > 1 and not np.all(np.diff(rows) > 0):  # the keys' ties go by row, as in a whole render
         raise ValueError("the moved rows must be ascending")
-    moved_row = np.zeros(renderer.num_gaussians, dtype=np.bool_)
+    moved_row = np.zeros(num_rows, dtype=np.bool_)
     moved_row[rows] = True
     entry_moved = moved_row[bins.order]
     n_tiles = bins.tile_start.size - 1
@@ -96,13 +96,13 @@ def moved_image(variants: "FrameVariants", rows: np.ndarray, part: "Renderer", r
     part_keys = (new.keys & ~_LOW) | rows[new.order].astype(np.uint64)  # the moved rows' keys in the cloud
     start, ids = _merge_lists(tiles, bins.tile_start, bins.ids, bins.keys, entry_moved,
                               new.tile_start, new.ids, part_keys, bins.order.size, n_tiles)
-    pack = variants.pack_with(new.pack)
+    pack = pack_with(new.pack)
     merged = TileBins(bins.order, pack, bins.rects, start, ids, bins.tiles_x, bins.tiles_y, 0)
     color, trans, _, _ = rasterize(merged, camera.width, camera.height, only=tiles)
     image = reference.copy()
     pixels = _tile_pixels(touched, bins.tiles_x, camera.width, camera.height).reshape(-1)
     # the blend's sum over the background, cast to float32 as Renderer.blend does
-    image.reshape(-1, 3)[pixels] = color[pixels] + trans[pixels, None] * variants.background
+    image.reshape(-1, 3)[pixels] = color[pixels] + trans[pixels, None] * background
     return image
 
 

@@ -14,6 +14,9 @@ they were, so the per-Gaussian work of a render (projection, shading, depth sort
 
 Each image equals a fresh :class:`Renderer`'s of the variant bit for bit (the per-Gaussian
 kernels work row by row): tests/test_render.py.
+
+A third kind moves some rows (new means, shapes or opacities): :meth:`FrameVariants.moved` blends
+again only the tiles those rows touch, before or after (:mod:`.moved`; tests/test_render_moved.py).
 """
 
 from __future__ import annotations
@@ -63,7 +66,8 @@ class FrameVariants:
         only the tiles they touch blend again (:mod:`.moved`). ``reference``: :meth:`image`, when known."""
         from gscodec_shac.render.moved import moved_image
 
-        return moved_image(self, rows, part, self.image() if reference is None else reference)
+        return moved_image(self.frame.bins, self.renderer.num_gaussians, self.camera, self.background,
+                           self.image() if reference is None else reference, rows, part, self.pack_with)
 
     def pack_with(self, part_pack: np.ndarray) -> np.ndarray:
         """The frame's depth-sorted parameter rows followed by ``part_pack``'s (one buffer, kept)."""
