@@ -1,4 +1,4 @@
-"""The image of a cloud with a few rows moved (new means, shapes or opacities), from the cloud's own
+"""The image of a cloud with a few rows moved (new means, shapes, opacities or colours), from the cloud's own
 prepared frame: only the tiles those rows touch, before or after, are blended again.
 
 A fresh render of the moved cloud lists, in each tile, every Gaussian whose alpha ellipse meets it,
@@ -39,8 +39,8 @@ def _touched_tiles(tile_start, ids, entry_moved, touched):  # pragma: no cover -
 
 
 @numba.njit(cache=True)
-def _merge_lists(tiles, f_start, f_ids, f_keys, f_moved, p_start, p_ids, p_keys, offset, n_tiles):
-    # pragma: no cover - compiled
+def _merge_lists(tiles, f_start, f_ids, f_keys, f_moved, p_start, p_ids, p_keys, offset,
+                 n_tiles):  # pragma: no cover - compiled
     """Tile lists of ``tiles``: the frame's entries of rows that stayed and the part's entries (ids
     shifted by ``offset``), merged by key; every other tile's list is empty."""
     counts = np.zeros(n_tiles, dtype=np.int64)
