@@ -36,7 +36,8 @@ def _moved(cloud, rows, rng, what):
 
 @pytest.mark.parametrize("what", [("scales",), ("quats",), ("opacities",), ("means", "scales", "quats", "opacities")])
 @pytest.mark.parametrize("share", [0.0, 0.02, 0.3, 1.0])
-def test_moved_rows_render_as_a_fresh_renderer(scene, what, share):
+@pytest.mark.parametrize("reserve", [False, True])
+def test_moved_rows_render_as_a_fresh_renderer(scene, what, share, reserve):
     rng = np.random.default_rng(3)
     cloud = scene.cloud
     rows = np.flatnonzero(rng.random(cloud.num_gaussians) < share)
@@ -45,7 +46,7 @@ def test_moved_rows_render_as_a_fresh_renderer(scene, what, share):
     renderer = Renderer(cloud)
     for background in ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)):
         for camera in scene.cameras:
-            variants = FrameVariants(renderer, camera, background)
+            variants = FrameVariants(renderer, camera, background, moved_rows=rows.size if reserve else 0)
             image = variants.moved(rows, part)
             fresh = Renderer(moved).render(camera, background=background).image
             assert np.array_equal(image, fresh)
@@ -84,3 +85,16 @@ def test_a_schedule_of_some_tiles_deals_each_of_them_once():
     for only in (np.array([1, 4, 9]), np.array([5]), np.array([], dtype=np.int64)):
         tiles, worker_start = raster.tile_schedule(tile_start, 2, only)
         assert np.array_equal(np.sort(tiles), only) and worker_start[-1] == only.size
+
+
+def test_reserved_rows_take_the_moved_parameter_rows_without_a_copy_of_the_frames(scene):
+    cloud = scene.cloud
+    renderer = Renderer(cloud)
+    rows = np.arange(cloud.num_gaussians)  # every Gaussian moved: no culled rows leave room
+    part_pack = np.ones((rows.size, renderer._workspace().pack.shape[1]))
+    plain = FrameVariants(renderer, scene.cameras[0]).pack_with(part_pack)
+    assert not np.shares_memory(plain, renderer._workspace().pack)
+    variants = FrameVariants(renderer, scene.cameras[0], moved_rows=rows.size)
+    reserved = variants.pack_with(part_pack)
+    assert np.shares_memory(reserved, renderer._workspace().pack)
+    assert np.array_equal(reserved, plain)

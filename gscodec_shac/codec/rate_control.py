@@ -490,7 +490,7 @@ class RateController:
         self._references = []
         per_view: dict[Any, list] = {key: [] for key in [*recolours, *moved, *range(len(candidates)), *zeroings]}
         for view in self.views:
-            frame = FrameVariants(renderer, view, self.background)
+            frame = FrameVariants(renderer, view, self.background, moved_rows=rows.size if moved else 0)
             reference = frame.image()
             self._references.append(reference)
             for name, (sh_dc, sh_rest) in recolours.items():

@@ -88,6 +88,12 @@ class _Workspace:
         self.rects = np.empty((n, 4), dtype=np.int32)
         self.pixels: dict[str, np.ndarray] = {}
 
+    def reserve_pack(self, rows: int) -> None:
+        """Room for ``rows`` depth-sorted parameter rows (a frame's, then rows appended behind them,
+        :meth:`.variants.FrameVariants.pack_with`); call it before preparing the frame."""
+        if self.pack.shape[0] < rows:
+            self.pack = np.empty((rows, PACK_WIDTH))
+
 
 def parse_background(background: Sequence[float] | np.ndarray) -> np.ndarray:
     """A background colour as a float64 (3,) array (one value per RGB channel)."""

@@ -37,15 +37,19 @@ class FrameVariants:
     """The cloud of ``renderer`` prepared once for ``camera``; images of it and of its variants.
 
     Holds the renderer's workspace: render nothing else with ``renderer`` while this is in use.
+    ``moved_rows``: the most rows a :meth:`moved` variant will replace (room for their parameter rows
+    behind the frame's, so that the frame's are not copied for each).
     """
 
-    def __init__(self, renderer: Renderer, camera: Camera, background: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
+    def __init__(self, renderer: Renderer, camera: Camera, background: Sequence[float] = (0.0, 0.0, 0.0), *,
+                 moved_rows: int = 0) -> None:
         self.renderer = renderer
         self.camera = camera
         self.background = parse_background(background)
+        if moved_rows:
+            renderer._workspace().reserve_pack(renderer.num_gaussians + moved_rows)
         self.frame: Frame = renderer.prepare(camera)
         self._pair_rows: np.ndarray | None = None  # the cloud's row of each tile-list entry
-        self._pack: np.ndarray | None = None  # the frame's parameter rows, then a moved part's (:meth:`moved`)
 
     def image(self) -> np.ndarray:
         """(H, W, 3) float32: the cloud's own image (as :meth:`Renderer.render`)."""
@@ -70,14 +74,16 @@ class FrameVariants:
                            self.image() if reference is None else reference, rows, part, self.pack_with)
 
     def pack_with(self, part_pack: np.ndarray) -> np.ndarray:
-        """The frame's depth-sorted parameter rows followed by ``part_pack``'s (one buffer, kept)."""
+        """The frame's depth-sorted parameter rows followed by ``part_pack``'s: written behind the frame's
+        rows in the renderer's workspace, whose first rows are the frame's, when it has room (the culled
+        Gaussians' rows, and ``moved_rows``), else a new array (a copy of the frame's rows)."""
         own = self.frame.bins.pack
         rows = own.shape[0] + part_pack.shape[0]
-        if self._pack is None or self._pack.shape[0] < rows:
-            self._pack = np.empty((own.shape[0] + max(part_pack.shape[0], own.shape[0] // 8 + 1), own.shape[1]))
-            self._pack[: own.shape[0]] = own
-        self._pack[own.shape[0]:rows] = part_pack
-        return self._pack[:rows]
+        workspace = self.renderer._workspace().pack
+        if rows > workspace.shape[0] or not np.shares_memory(own, workspace[:1]):
+            return np.concatenate([own, part_pack])
+        workspace[own.shape[0]:rows] = part_pack
+        return workspace[:rows]
 
     def variant(self, keep: np.ndarray | None = None, rows: np.ndarray | None = None,
                 sh_dc: np.ndarray | None = None, sh_rest: np.ndarray | None = None) -> np.ndarray:
