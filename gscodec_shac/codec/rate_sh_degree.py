@@ -80,13 +80,11 @@ def whole_cloud_flags(cloud: GaussianCloud, bar: float) -> np.ndarray:
     return degrees.dc_only_flags(cloud_energy(cloud), 0.0, bar)
 
 
-def kept_flags(energy: np.ndarray, kept: np.ndarray, bar: float, order: np.ndarray | None = None) -> np.ndarray:
+def kept_flags(energy: np.ndarray, kept: np.ndarray, bar: float, order: np.ndarray) -> np.ndarray:
     """The rows of ``kept`` (ascending) the bar leaves DC-only in ``cloud.select(kept)``, given the whole
     cloud's :func:`cloud_energy`: ``kept[whole_cloud_flags(cloud.select(kept), bar)]`` (ascending).
-    ``order``: ``np.argsort(energy, kind="stable")`` when the caller has it (the kept rows in that order
-    are the order of their own energies, ties by row, as sorting them anew gives)."""
-    if order is None:
-        return kept[degrees.dc_only_flags(energy[kept], 0.0, bar)]
+    ``order``: ``np.argsort(energy, kind="stable")``, ranked once for every pruning choice (the kept rows
+    in that order are the order of their own energies, ties by row, as sorting them anew gives)."""
     listed = np.zeros(energy.size, dtype=np.bool_)
     listed[kept] = True
     ranked = order[listed[order]]
