@@ -23,8 +23,9 @@ from typing import Iterable, TextIO
 PACKAGE = Path(__file__).resolve().parent
 #: Modules with ``cache=True`` kernels, by the part of the program that uses them.
 GROUPS: dict[str, tuple[str, ...]] = {
-    "codec": ("codec/quantize.py", "codec/gap_packing.py"),
-    "render": ("render/projection.py", "render/binning.py", "render/shading.py", "render/raster.py"),
+    "codec": ("codec/gap_packing.py",),
+    "render": ("render/projection.py", "render/binning.py", "render/key_sort.py", "render/shading.py",
+               "render/raster.py", "render/moved.py"),
     "train": ("render/backward.py", "train/model.py", "train/fastloss.py", "train/colour_path.py"),
 }
 #: Kernel groups each command compiles on first use (commands not listed compile none; ``decode``

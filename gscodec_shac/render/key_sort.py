@@ -65,9 +65,13 @@ def _radix_sort_high(keys, scratch, n_chunks, shifts):  # pragma: no cover - com
             keys[k] = src[k]
 
 
-def sort_depth_keys(keys: np.ndarray) -> None:
-    """Sort the projection's ``keys`` (uint64, in index order) in place; the same result as ``keys.sort()``."""
-    if keys.shape[0] < MIN_RADIX:
+def sort_depth_keys(keys: np.ndarray, *, min_radix: int = MIN_RADIX) -> None:
+    """Sort the projection's ``keys`` (uint64, in index order) in place; the same result as ``keys.sort()``.
+
+    ``min_radix``: below this many keys numpy sorts them (the renderer's warm-up passes 0, so that a
+    tiny render compiles the radix kernel too).
+    """
+    if keys.shape[0] < max(min_radix, 1):
         keys.sort()
         return
     n_chunks = max(1, min(4 * numba.get_num_threads(), keys.shape[0] // 16384))
