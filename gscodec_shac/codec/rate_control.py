@@ -71,6 +71,7 @@ from gscodec_shac.codec.effort import with_scene_analysis
 from gscodec_shac.codec.encoder import Encoder, position_set_cache_key
 from gscodec_shac.codec.importance import (gaussian_importance, importance_views, keep_count,
                                            most_important_counts)
+from gscodec_shac.codec.pchip import pchip
 from gscodec_shac.codec.positions import encode_sorted_codes, morton_encode, set_order
 from gscodec_shac.codec.rate_points import RatePoint, load_rate_point
 from gscodec_shac.codec.rate_sh_degree import (DC_ONLY_BARS, RATIO_QPS, DcOnlyChoice, cloud_energy, fit_choices,
@@ -1353,9 +1354,7 @@ def _interpolate_log(xs: Sequence[float], ys: np.ndarray, grid: np.ndarray,
     extended along the end segments (one point: a constant). A rate falls faster towards the QP at
     which the codec stops coding detail than one straight segment in log(y) between probes says.
     ``inner(xs, logs, grid)``: another curve between three points or more (``scripts/rate_curve_check.py``)."""
-    from scipy.interpolate import PchipInterpolator
-
-    inner = inner or (lambda x, logs, at: PchipInterpolator(x, logs)(at))
+    inner = inner or pchip
     xs = np.asarray(xs, dtype=np.float64)
     logs = np.log(np.maximum(np.asarray(ys, dtype=np.float64), 1e-12))
     grid = np.asarray(grid, dtype=np.float64)
