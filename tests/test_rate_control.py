@@ -572,24 +572,6 @@ def test_a_size_target_codes_the_probe_at_its_first_plan_and_plans_again(small_s
 
 
 
-def test_the_probe_encodes_two_at_once_fit_the_models_of_one_at_a_time(small_scene, monkeypatch):
-    """The probe's encodes run concurrently (PROBE_ENCODES_AT_ONCE) and give the models they give one
-    after the other: the same bytes, errors, SH feature points and fixed bytes."""
-    from gscodec_shac.codec import rate_control
-
-    monkeypatch.setattr(rate_control, "PROBE_MIN", 500)
-    fits = []
-    for at_once in (1, 2):
-        monkeypatch.setattr(rate_control, "PROBE_ENCODES_AT_ONCE", at_once)
-        fits.append(RateController(small_scene.cloud, views=small_scene.cameras, importance_shares=(), workers=2).fit())
-    one, two = fits
-    assert one._probe_rows.size < small_scene.cloud.num_gaussians
-    assert sorted(one.models_) == sorted(two.models_)
-    for name, model in one.models_.items():
-        assert np.array_equal(model.bytes, two.models_[name].bytes) and np.array_equal(model.mse, two.models_[name].mse)
-    assert one._sh_points == two._sh_points and one.overhead_ == two.overhead_
-
-
 def test_a_size_target_probes_again_when_its_plan_moves_the_sh_off_the_qps_coded(small_scene, monkeypatch):
     """Version 16: after a probe at the plan, a plan whose SH features the probe has not all coded at the
     plan's QPs is probed too (at most PLAN_PROBES probes); with probes to spare, the first encode's features

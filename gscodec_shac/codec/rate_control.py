@@ -120,8 +120,6 @@ IMPORTANCE_SHARES = (0.8, 0.6, 0.45, 0.3)
 #: the SH features' base QP where the probe has not coded them (version 16; 2 probes then let the chair's
 #: 40 and 55 bits/G plans end on an unmeasured pruning: -1.0 and -0.7 dB).
 PLAN_PROBES = 3
-#: The probe's encodes run this many at a time (the same bytes; the cores busy through each one's tail).
-PROBE_ENCODES_AT_ONCE = 2
 #: Bounds of the measured cost of a kept Gaussian against an average one (:meth:`RateController._prune_factor`).
 PRUNE_FACTOR_BOUNDS = (0.5, 3.0)
 #: A probe holds this many Gaussians (all of a smaller cloud), whatever the cloud's size (up to
@@ -609,32 +607,25 @@ class RateController:
         rates = {a: np.zeros(len(PROBE_QPS)) for a in names}
         errors = {a: np.zeros(len(PROBE_QPS)) for a in names}
         overhead = 0.0
-        points = [self._rate_point({a: qp for a in names} | {"positions": 16}) for qp in PROBE_QPS]
-        # two encodes at once: an encode's last long piece (the SH frames) leaves the other core idle
-        with ThreadPoolExecutor(PROBE_ENCODES_AT_ONCE) as pool:
-            jobs = [pool.submit(self._probe_encode, probe, point) for point in points]
-            for i, (qp, point, job) in enumerate(zip(PROBE_QPS, points, jobs)):
-                stream, order, decoded = job.result()
-                source, sizes = probe.select(order), stream.attribute_sizes()
-                for a in names:
-                    rates[a][i] = _scaled_probe_bytes(sizes, a, scale)
-                    errors[a][i] = _attribute_mse(a, source, decoded, point.color == "ycbcr")
-                if qp == SENSITIVITY_QP:
-                    self._probe_decoded = (rows[order], decoded)
-                if "sh" in names and self._waterfilled:
-                    self._record_sh_chunks(stream, scale)
-                # the header and the HEVC parameter-set table (codec/parameter_sets.py): a file's fixed bytes
-                overhead = max(overhead, sizes.get("header", 0) + sizes.get(parameter_sets.CHUNK, 0))
-                if bar is not None:
-                    bar.update(1)
+        for i, qp in enumerate(PROBE_QPS):
+            point = self._rate_point({a: qp for a in names} | {"positions": 16})
+            encoder = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers)
+            stream = encoder.encode(probe)
+            decoded = _decoded(stream, self.workers)
+            source = probe.select(encoder.order_)
+            sizes = stream.attribute_sizes()
+            for a in names:
+                rates[a][i] = _scaled_probe_bytes(sizes, a, scale)
+                errors[a][i] = _attribute_mse(a, source, decoded, point.color == "ycbcr")
+            if qp == SENSITIVITY_QP:
+                self._probe_decoded = (rows[encoder.order_], decoded)
+            if "sh" in names and self._waterfilled:
+                self._record_sh_chunks(stream, scale)
+            # the header and the HEVC parameter-set table (codec/parameter_sets.py): a file's fixed bytes
+            overhead = max(overhead, sizes.get("header", 0) + sizes.get(parameter_sets.CHUNK, 0))
+            if bar is not None:
+                bar.update(1)
         return rates, errors, overhead
-
-    def _probe_encode(self, probe: GaussianCloud, point: RatePoint) -> tuple[Bitstream, np.ndarray, GaussianCloud]:
-        """One probe encode: the stream, the encoder's row order (``probe``'s row of each decoded
-        Gaussian) and the decoded cloud."""
-        encoder = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers)
-        stream = encoder.encode(probe)
-        return stream, encoder.order_, _decoded(stream, self.workers)
 
     @property
     def _waterfilled(self) -> bool:
@@ -1201,14 +1192,13 @@ class RateController:
             return False
         names = list(self._probe_rates)
         point = self._rate_point({name: plan.settings[name] for name in names} | {"positions": 16})
+        sizes = self._probe_sizes(rows, point, record_sh="sh" in names and self._waterfilled)
         scale = self.cloud.num_gaussians / rows.size
         prune = plan.settings.get("prune", 0)
-        kept_rows = rows[self._prune_masks[prune][rows]] if prune and prune not in self._prune_factors else rows[:0]
-        with ThreadPoolExecutor(1) as pool:  # the pruned probe's encode beside the probe's
-            pruned_job = pool.submit(self._probe_sizes, kept_rows, point, record_sh=False) if kept_rows.size else None
-            sizes = self._probe_sizes(rows, point, record_sh="sh" in names and self._waterfilled)
-            if pruned_job is not None:
-                pruned = pruned_job.result()
+        if prune and prune not in self._prune_factors:
+            kept_rows = rows[self._prune_masks[prune][rows]]
+            if kept_rows.size:
+                pruned = self._probe_sizes(kept_rows, point, record_sh=False)
                 self._prune_factors[prune] = {
                     name: float(np.clip((pruned.get(name, 0) / kept_rows.size) / max(sizes.get(name, 0) / rows.size, 1e-9),
                                         *PRUNE_FACTOR_BOUNDS)) for name in names}
