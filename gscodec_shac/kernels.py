@@ -108,7 +108,7 @@ def announce(command: str | None, stream: TextIO | None = None) -> bool:
 def compile_all(progress: bool = True) -> None:
     """Compile (or load) the renderer's and the codec's kernels: a warm-up render, a small encode and decode."""
     from gscodec_shac.codec import Decoder, Encoder
-    from gscodec_shac.render.renderer import warmup
+    from gscodec_shac.render.kernel_warmup import warmup
     from gscodec_shac.synthetic import make_synthetic_scene
 
     warmup()

@@ -11,9 +11,10 @@ Public API::
 
 Modules: :mod:`.projection` (EWA projection, pixel convention), :mod:`.shading` (SH colours),
 :mod:`.binning` (depth sort + tile lists), :mod:`.raster` (per-pixel blending),
-:mod:`.renderer` (the API), :mod:`.reference` (a dense every-pixel-every-Gaussian version for
-tests), :mod:`.output` (PNG writing). Kernels are numba-compiled with ``cache=True``; the first
-call in a fresh environment compiles them (:func:`warmup` does it up front).
+:mod:`.renderer` (the API), :mod:`.kernel_warmup` (every kernel compiled up front),
+:mod:`.reference` (a dense every-pixel-every-Gaussian version for tests), :mod:`.output` (PNG
+writing). Kernels are numba-compiled with ``cache=True``; the first call in a fresh environment
+compiles them (:func:`warmup` does it up front).
 
 Importing this package sets ``OMP_WAIT_POLICY=PASSIVE`` unless the variable is already set
 (:mod:`gscodec_shac.openmp`): numba's OpenMP threads then sleep between the renderer's parallel regions.
@@ -31,8 +32,8 @@ from gscodec_shac.render.renderer import (  # noqa: E402
     render,
     render_views,
     render_weights,
-    warmup,
 )
+from gscodec_shac.render.kernel_warmup import warmup  # noqa: E402
 
 __all__ = [
     "BLOCK",

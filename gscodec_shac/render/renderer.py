@@ -10,7 +10,6 @@ clipped (clip when saving or measuring, as :func:`gscodec_shac.render.output.sav
 from __future__ import annotations
 
 import os
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -297,35 +296,3 @@ def render_views(
             results.append(path)
     return results
 
-
-def warmup() -> float:
-    """Compile (or load from numba's on-disk cache) every kernel; returns the seconds it took."""
-    from gscodec_shac.camera import look_at
-
-    start = time.perf_counter()
-    rng = np.random.default_rng(0)
-    n = 8
-    cloud = GaussianCloud(
-        means=rng.normal(0.0, 0.3, (n, 3)), scales=np.full((n, 3), -2.0), quats=rng.normal(size=(n, 4)),
-        opacities=np.full(n, 2.0), sh_dc=rng.normal(size=(n, 3)), sh_rest=rng.normal(0, 0.1, (n, 15, 3)),
-    )
-    camera = look_at("warmup", np.array([0.0, -3.0, 0.5]), np.zeros(3), np.array([0.0, 0.0, 1.0]), 24, 20, 30.0)
-    renderer = Renderer(cloud)
-    renderer.render(camera, depth=True)
-    renderer.weights(camera)
-    renderer.contributions(camera)
-    _warm_rate_control_kernels(renderer, cloud, camera)
-    return time.perf_counter() - start
-
-
-def _warm_rate_control_kernels(renderer: Renderer, cloud: GaussianCloud, camera: Camera) -> None:
-    """The kernels a tiny render does not reach: the radix depth sort (numpy sorts short key arrays)
-    and the moved-row merge (the rate controller's calibration renders)."""
-    from gscodec_shac.render.key_sort import sort_depth_keys
-    from gscodec_shac.render.variants import FrameVariants
-
-    sort_depth_keys(np.arange(64, 0, -1, dtype=np.uint64) << np.uint64(32), min_radix=0)
-    rows = np.arange(2)
-    moved = cloud.select(rows)
-    moved = moved.replace(means=moved.means + 0.05)
-    FrameVariants(renderer, camera, moved_rows=rows.size).moved(rows, Renderer(moved))
