@@ -131,8 +131,5 @@ print(" ".join(missing))
 def test_the_warm_up_compiles_every_codec_and_render_kernel():
     """``python -m gscodec_shac.kernels --compile`` (run by the install) reaches every kernel of the
     commands that encode and render: none is left to compile during a user's first large encode."""
-    import subprocess
-    import sys
-
     done = subprocess.run([sys.executable, "-c", _CHECK_COMPILED], capture_output=True, text=True, check=True)
     assert done.stdout.strip() == ""

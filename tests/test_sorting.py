@@ -298,6 +298,25 @@ def test_parallel_target_is_the_numpy_target(monkeypatch, channels, n):
     assert got.tobytes() == plas_module.finish_target(blurred.copy(), state).tobytes()
 
 
+#: The pinned orders, by the vector width the fast-math kernels are compiled for: the padded grid's
+#: whole-layout sort differs between AVX2 (the machines up to 2026-11-28; also this one with
+#: NUMBA_CPU_NAME=haswell) and AVX-512 (the Intel Xeon of 2026-11-29), everything else is the same.
+PLAS_ORDERS_AVX2 = ["1890e7ba7a745057", "f4c6f58236f7484f", "f4c6f58236f7484f",
+                    "bc4b81024f1628d7", "444290ba5d0e0c67", "444290ba5d0e0c67"]
+PLAS_ORDERS_AVX512 = ["1890e7ba7a745057", "9bd73a137db3ef1b", "9bd73a137db3ef1b",
+                      "bc4b81024f1628d7", "444290ba5d0e0c67", "444290ba5d0e0c67"]
+
+
+def _kernels_target_avx512() -> bool:
+    """Whether numba compiles for a CPU with AVX-512: the host's, unless NUMBA_CPU_NAME names another."""
+    import llvmlite.binding as ll
+    from numba.core import config
+
+    if config.CPU_NAME and config.CPU_NAME != "host":
+        return "+avx512f" in (config.CPU_FEATURES or "")
+    return bool(ll.get_host_cpu_features().get("avx512f"))
+
+
 def test_plas_orders_are_those_of_the_sort_before_the_buffer_reuse(monkeypatch):
     """Pins the exact orders (sha256 prefixes) of a padded and a full grid, whole-layout and
     block-by-block, serial and parallel, as sorted at commit 482e7c8, before the blur reused its
@@ -320,25 +339,6 @@ def test_plas_orders_are_those_of_the_sort_before_the_buffer_reuse(monkeypatch):
             patch.setattr(plas_module, "PARALLEL_GROUPS", 1)
             got.append(digest(sorting.sort_to_grid(feats, shape, seed=2)))
     assert got == (PLAS_ORDERS_AVX512 if _kernels_target_avx512() else PLAS_ORDERS_AVX2)
-
-
-#: The pinned orders, by the vector width the fast-math kernels are compiled for: the padded grid's
-#: whole-layout sort differs between AVX2 (the machines up to 2026-11-28; also this one with
-#: NUMBA_CPU_NAME=haswell) and AVX-512 (the Intel Xeon of 2026-11-29), everything else is the same.
-PLAS_ORDERS_AVX2 = ["1890e7ba7a745057", "f4c6f58236f7484f", "f4c6f58236f7484f",
-                    "bc4b81024f1628d7", "444290ba5d0e0c67", "444290ba5d0e0c67"]
-PLAS_ORDERS_AVX512 = ["1890e7ba7a745057", "9bd73a137db3ef1b", "9bd73a137db3ef1b",
-                      "bc4b81024f1628d7", "444290ba5d0e0c67", "444290ba5d0e0c67"]
-
-
-def _kernels_target_avx512() -> bool:
-    """Whether numba compiles for a CPU with AVX-512: the host's, unless NUMBA_CPU_NAME names another."""
-    import llvmlite.binding as ll
-    from numba.core import config
-
-    if config.CPU_NAME and config.CPU_NAME != "host":
-        return "+avx512f" in (config.CPU_FEATURES or "")
-    return bool(ll.get_host_cpu_features().get("avx512f"))
 
 
 # ------------------------------------------------------------------ features and metrics
