@@ -168,9 +168,11 @@ def encode_file_to_target(
     preset: str | None = None,
     analysis: str | None = None,
     progress: bool = False,
+    recover: bool = False,
 ) -> dict[str, Any]:
     """Any model file ``read_model`` reads -> ``.gsc`` at a target (:mod:`.rate_control`): a size (``"2.5MB"``), bits per Gaussian or
     PSNR against the uncompressed model on ``cameras`` (any camera file; default: orbit views).
+    ``recover``: also code the model's pruned-and-recovered versions and keep the best file (:mod:`.rate_recover`).
 
     Nothing is written when the target cannot be reached (:class:`TargetUnreachableError`).
     """
@@ -184,8 +186,14 @@ def encode_file_to_target(
     cloud, notes = read_model(in_ply)
     target = target or make_target(cloud.num_gaussians, size=size, bpg=bpg, psnr=psnr)
     views = load_cameras(cameras) if cameras is not None else None
-    controller = RateController(cloud, template, views, up=up, background=background, progress=progress,
-                                codec_options=_codec_options(preset, analysis))
+    options = {"up": up, "background": background, "progress": progress,
+               "codec_options": _codec_options(preset, analysis)}
+    if recover:
+        from gscodec_shac.codec.rate_recover import RecoveringController
+
+        controller: Any = RecoveringController(cloud, template, views, controller_options=options)
+    else:
+        controller = RateController(cloud, template, views, **options)
     outcome = controller.encode(target)
     with inputs_protected(in_ply, *([cameras] if cameras is not None else [])):
         written = outcome.stream.write(out_gsc)

@@ -258,6 +258,8 @@ class Outcome:
     trials: list[dict[str, float]] = field(default_factory=list)
     #: The probe's visibility the render sensitivities were weighed by (1: not weighed; version 11).
     probe_visibility: float = 1.0
+    #: With ``--recover`` (:mod:`.rate_recover`): the source kept (its keep share) and every source's result.
+    recovery: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
         """What ``encode --json`` and the header report about the choice."""
@@ -277,6 +279,8 @@ class Outcome:
             out["measured_psnr"] = round(self.measured_psnr, 3)
         if self.trials:
             out["trials"] = [{k: round(v, 3) for k, v in row.items()} for row in self.trials]
+        if self.recovery is not None:
+            out["recovery"] = self.recovery
         return out
 
 

@@ -220,7 +220,7 @@ class Auto(Recipe):
     def check(self, raw: dict[str, Any], base: Path) -> dict[str, Any]:
         from gscodec_shac.codec.rate_control import TEMPLATE, VERSION, parse_size
 
-        self.where.only(raw, (*self._KINDS, "template", "sh"))
+        self.where.only(raw, (*self._KINDS, "template", "sh", "recover"))
         given = [k for k in self._KINDS if k in raw]
         if len(given) != 1:
             raise self.where.error("", "give exactly one list of targets: bpg, sizes or psnr")
@@ -239,7 +239,25 @@ class Auto(Recipe):
         params = {kind: list(values), "template": template, "controller_version": VERSION}
         if "sh" in raw:  # only when given, so the keys of the runs with the template's stage stay the same
             params["sh"] = self.where.choice(raw["sh"], ("none",), "sh")
+        if "recover" in raw:  # prune by importance and distil first (gscodec_shac/train/recover.py)
+            params["recover"] = self._check_recover(raw["recover"])
         return params
+
+    def _check_recover(self, raw: Any) -> dict[str, Any]:
+        from gscodec_shac.train.recover import DEFAULT_ITERATIONS
+
+        raw = self.where.mapping(raw, "recover", optional=False)
+        where = self.where.at("recover")
+        where.only(raw, ("keep", "iterations"))
+        if "keep" not in raw:
+            raise where.error("keep", "give the share of the Gaussians kept, in (0, 1], or a list of shares "
+                              "(the controller then also codes the model itself and keeps the best file)")
+        iterations = where.integer(raw.get("iterations", DEFAULT_ITERATIONS), "iterations", 0, 100_000)
+        if isinstance(raw["keep"], list):  # a choice between the model and its recovered versions (rate_recover)
+            shares = [where.number(v, f"keep[{i}]", 0.0, 1.0, open_lo=True)
+                      for i, v in enumerate(where.sequence(raw["keep"], "keep"))]
+            return {"choose": shares, "iterations": iterations}
+        return {"keep": where.number(raw["keep"], "keep", 0.0, 1.0, open_lo=True), "iterations": iterations}
 
     def points(self, params: dict[str, Any], rate_points: tuple[str, ...]) -> tuple[str, ...]:
         kind = next(k for k in self._KINDS if k in params)
@@ -249,12 +267,12 @@ class Auto(Recipe):
         from gscodec_shac.codec import Decoder
         from gscodec_shac.codec.rate_control import TargetUnreachableError, make_target
 
-        cloud = ctx.load_cloud()
+        cloud = ctx.load_cloud()  # bits per Gaussian count the scene's Gaussians, also with a recovery
         kind, _, value = ctx.label.partition("-")
         target = make_target(cloud.num_gaussians, size=value if kind == "size" else None,
                              bpg=float(value) if kind == "bpg" else None, psnr=float(value) if kind == "psnr" else None)
         tic = time.perf_counter()
-        controller, fitted_s = _fitted_controller(ctx, params["template"], params.get("sh"))
+        controller, fitted_s = _fitted_controller(ctx, params["template"], params.get("sh"), params.get("recover"))
         try:
             outcome = controller.encode(target)
         except TargetUnreachableError as exc:
@@ -266,6 +284,8 @@ class Auto(Recipe):
         decode_s = time.perf_counter() - tic
         extra = {"rate_control": outcome.summary(), "fit_s": round(fitted_s, 3),
                  "sh_features": (outcome.stream.header.get("sh") or {}).get("features")}
+        if "keep" in params.get("recover", {}):  # a fixed recovered source (a choice reports in rate_control)
+            extra["recovery"] = _RECOVERIES[_recovery_key(ctx, params["recover"])].summary()
         return Outcome(decoded, len(data), dict(outcome.stream.attribute_sizes()), encode_s, decode_s, extra)
 
 
@@ -290,18 +310,50 @@ def template_without_sh(template: str) -> Any:
     return dataclasses.replace(point, attributes=attributes, name=f"{point.name}+nosh")
 
 
-def _fitted_controller(ctx: RunContext, template: str, sh: str | None = None) -> tuple[Any, float]:
-    """One fitted rate controller per (scene file, template, SH stage, preset) in this process, and the
-    seconds its fit took (``sh``: ``none`` for the template without its SH stage)."""
+_RECOVERIES: dict[tuple, Any] = {}
+
+
+def _recovery_key(ctx: RunContext, recover: dict[str, Any]) -> tuple:
+    return (str(ctx.ply_path), str(recover.get("keep", recover.get("choose"))), recover["iterations"], ctx.background)
+
+
+def _recovered(ctx: RunContext, recover: dict[str, Any]) -> GaussianCloud:
+    """The scene pruned by importance and distilled to its renders on the calibration views
+    (:func:`gscodec_shac.train.recover.prune_and_recover`), once per scene and setting in this process."""
+    from gscodec_shac.train.recover import prune_and_recover
+
+    key = _recovery_key(ctx, recover)
+    if key not in _RECOVERIES:
+        _RECOVERIES.clear()  # one scene's recovery at a time
+        _RECOVERIES[key] = prune_and_recover(ctx.load_cloud(), ctx.calibration_views() or None,
+                                             keep_share=recover["keep"], iterations=recover["iterations"],
+                                             background=ctx.background)
+    return _RECOVERIES[key].cloud
+
+
+def _fitted_controller(ctx: RunContext, template: str, sh: str | None = None,
+                       recover: dict[str, Any] | None = None) -> tuple[Any, float]:
+    """One fitted rate controller per (scene file, template, SH stage, recovery, preset) in this process,
+    and the seconds its fit took, a recovery included (``sh``: ``none`` for the template without its
+    SH stage; ``recover``: fitted on the pruned and recovered scene)."""
     from gscodec_shac.codec.rate_control import RateController
 
-    key = (str(ctx.ply_path), template, sh, ctx.preset, ctx.threads, ctx.background)
+    key = (str(ctx.ply_path), template, sh, ctx.preset, ctx.threads, ctx.background,
+           None if recover is None else _recovery_key(ctx, recover))
     if key not in _CONTROLLERS:
         tic = time.perf_counter()
         point = template_without_sh(template) if sh == "none" else template
-        controller = RateController(ctx.load_cloud(), point, ctx.calibration_views() or None, workers=ctx.threads,
-                                    background=ctx.background,
-                                    codec_options={"preset": ctx.preset} if ctx.preset else None).fit()
+        options = {"workers": ctx.threads, "background": ctx.background,
+                   "codec_options": {"preset": ctx.preset} if ctx.preset else None}
+        if recover is not None and "choose" in recover:
+            from gscodec_shac.codec.rate_recover import RecoveringController
+
+            controller: Any = RecoveringController(ctx.load_cloud(), point, ctx.calibration_views() or None,
+                                                   shares=recover["choose"], iterations=recover["iterations"],
+                                                   controller_options=options).fit()
+        else:
+            source = ctx.load_cloud() if recover is None else _recovered(ctx, recover)
+            controller = RateController(source, point, ctx.calibration_views() or None, **options).fit()
         _CONTROLLERS.clear()  # keep one scene's controller at a time
         _CONTROLLERS[key] = (controller, time.perf_counter() - tic)
     return _CONTROLLERS[key]

@@ -1,0 +1,147 @@
+"""Pruning with recovery: the fine-tune restores the renders, the controller keeps the best source."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gscodec_shac.cli import main
+from gscodec_shac.codec.importance import gaussian_importance, keep_count, most_important_counts
+from gscodec_shac.codec.rate_control import make_target
+from gscodec_shac.codec.rate_recover import RecoveringController
+from gscodec_shac.errors import ValidationError
+from gscodec_shac.io.ply import read_ply, write_ply
+from gscodec_shac.rd.methods import Auto, MethodError
+from gscodec_shac.train.recover import prune_and_recover
+
+
+@pytest.fixture(scope="module")
+def recovered(small_scene):
+    return prune_and_recover(small_scene.cloud, small_scene.cameras, keep_share=0.5, iterations=40)
+
+
+def test_recovery_keeps_the_share_and_restores_the_renders(small_scene, recovered):
+    assert recovered.kept == keep_count(2_000, 0.5) == recovered.cloud.num_gaussians
+    assert recovered.dropped == 2_000 - recovered.kept
+    # the fine-tune moves the kept Gaussians towards the whole model's renders
+    assert recovered.psnr_recovered > recovered.psnr_pruned + 1.0
+    assert recovered.summary()["iterations"] == 40
+
+
+def test_recovery_is_deterministic(small_scene, recovered):
+    again = prune_and_recover(small_scene.cloud, small_scene.cameras, keep_share=0.5, iterations=40, measure=False)
+    for name in ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest"):
+        np.testing.assert_array_equal(getattr(again.cloud, name), getattr(recovered.cloud, name))
+
+
+def test_no_iterations_is_importance_pruning_alone(small_scene):
+    cloud, views = small_scene.cloud, small_scene.cameras
+    result = prune_and_recover(cloud, views, keep_share=0.3, iterations=0)
+    rows = most_important_counts(gaussian_importance(cloud, views), [keep_count(cloud.num_gaussians, 0.3)])[0]
+    np.testing.assert_array_equal(result.cloud.means, cloud.means[rows])
+    np.testing.assert_array_equal(result.cloud.sh_rest, cloud.sh_rest[rows])
+
+
+@pytest.mark.parametrize("share, steps, match", [(0.0, 10, "keep share"), (1.5, 10, "keep share"),
+                                                 (float("nan"), 10, "keep share"), (0.5, -1, "iterations")])
+def test_bad_recovery_settings_are_clear_errors(small_scene, share, steps, match):
+    with pytest.raises(ValidationError, match=match):
+        prune_and_recover(small_scene.cloud, small_scene.cameras, keep_share=share, iterations=steps)
+
+
+# ------------------------------------------------------------------ the controller's choice
+@pytest.fixture(scope="module")
+def chooser(small_scene):
+    return RecoveringController(small_scene.cloud, views=small_scene.cameras, shares=(0.5,), iterations=40,
+                                controller_options={"workers": 2}).fit()
+
+
+def test_the_chooser_keeps_the_best_measured_file_under_a_size(small_scene, chooser):
+    target = make_target(2_000, bpg=60)
+    outcome = chooser.encode(target)
+    rows = outcome.recovery["sources"]
+    assert [row["keep"] for row in rows] == [1.0, 0.5]
+    coded = [row for row in rows if "measured_psnr" in row]
+    assert coded, rows
+    best = max(coded, key=lambda row: row["measured_psnr"])
+    assert outcome.recovery["keep"] == best["keep"]
+    assert outcome.stream.total_bytes() == best["bytes"] <= target.value
+    assert outcome.measured_psnr == pytest.approx(best["measured_psnr"], abs=1e-3)
+    assert outcome.summary()["recovery"]["keep"] == best["keep"]
+    assert outcome.stream.header["num_gaussians"] == (2_000 if best["keep"] == 1.0 else 1_000) or \
+        outcome.stream.header["num_gaussians"] < 2_000  # the controller may prune a source further
+
+
+def test_a_recovered_source_gets_the_error_its_recovery_left(chooser):
+    recovered = chooser.sources_[1]
+    assert 0 < recovered.psnr < 200 and chooser.sources_[0].psnr == float("inf")
+    wanted = chooser._source_target(recovered, make_target(2_000, psnr=recovered.psnr - 3.0))
+    # MSEs add: 10^(-T/10) = 10^(-R/10) + 10^(-S/10) for the recovery R and the source's own target S
+    assert 10 ** (-(recovered.psnr - 3.0) / 10) == pytest.approx(10 ** (-recovered.psnr / 10) + 10 ** (-wanted.value / 10))
+    assert chooser._source_target(recovered, make_target(2_000, psnr=recovered.psnr + 0.1)) is None
+
+
+def test_the_chooser_meets_a_psnr_target_with_the_smallest_file(chooser):
+    target = make_target(2_000, psnr=30.0)
+    outcome = chooser.encode(target)
+    coded = [row for row in outcome.recovery["sources"] if "measured_psnr" in row]
+    meeting = [row for row in coded if row["measured_psnr"] >= 30.0]
+    if meeting:
+        assert outcome.stream.total_bytes() == min(row["bytes"] for row in meeting)
+    else:
+        assert outcome.measured_psnr == pytest.approx(max(row["measured_psnr"] for row in coded), abs=1e-3)
+
+
+# ------------------------------------------------------------------ the command and the sweep recipe
+def test_prune_command_writes_the_recovered_model(tmp_path, small_scene, capsys):
+    source, out = tmp_path / "in.ply", tmp_path / "pruned.ply"
+    write_ply(source, small_scene.cloud)
+    assert main(["prune", str(source), str(out), "--keep", "0.25", "--recover", "5", "-q"]) == 0
+    assert read_ply(out).num_gaussians == keep_count(2_000, 0.25)
+    assert "kept 500 of 2,000 Gaussians; recovered in 5 steps" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("extra, match", [(["--keep", "0"], "keep share"), (["--keep", "0.5", "--recover", "-2"],
+                                          "iterations"), (["--keep", "0.5", "--split", "train"], "needs --cameras")])
+def test_prune_command_refuses_bad_settings_and_writes_nothing(tmp_path, small_scene, capsys, extra, match):
+    source, out = tmp_path / "in.ply", tmp_path / "pruned.ply"
+    write_ply(source, small_scene.cloud)
+    assert main(["prune", str(source), str(out), *extra]) == 2
+    err = capsys.readouterr().err
+    assert match in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_prune_command_refuses_a_gsc_output(tmp_path, small_scene, capsys):
+    source = tmp_path / "in.ply"
+    write_ply(source, small_scene.cloud)
+    assert main(["prune", str(source), str(tmp_path / "x.gsc"), "--keep", "0.5"]) == 2
+    assert "gscodec-shac encode" in capsys.readouterr().err
+
+
+def test_sweep_recipe_checks_its_recover_settings(tmp_path):
+    recipe = Auto()
+    assert recipe.check({"bpg": [50], "recover": {"keep": 0.6}}, tmp_path)["recover"] == {"keep": 0.6, "iterations": 200}
+    assert recipe.check({"bpg": [50], "recover": {"keep": [0.6, 0.45], "iterations": 50}}, tmp_path)["recover"] == \
+        {"choose": [0.6, 0.45], "iterations": 50}
+    for bad, match in (({"iterations": 10}, "keep"), ({"keep": [0.6, 2]}, r"keep\[1\]"), ({"keep": 0.5, "x": 1}, "x"),
+                       ([0.5], "mapping"), ({"keep": 0.5, "iterations": -1}, "iterations")):
+        with pytest.raises(MethodError, match=match):
+            recipe.check({"bpg": [50], "recover": bad}, tmp_path)
+
+
+def test_encode_to_a_target_with_recover(tmp_path, small_scene, capsys):
+    import json
+
+    from gscodec_shac.io.inria_cameras import write_inria_cameras
+
+    ply, cameras, out = tmp_path / "in.ply", tmp_path / "cameras.json", tmp_path / "out.gsc"
+    write_ply(ply, small_scene.cloud)
+    write_inria_cameras(cameras, small_scene.cameras)
+    assert main(["encode", str(ply), str(out), "--target-bpg", "60", "--cameras", str(cameras), "--recover",
+                 "--json", "-q"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    recovery = summary["rate_control"]["recovery"]
+    assert [row["keep"] for row in recovery["sources"]] == [1.0, 0.6, 0.45]
+    assert recovery["keep"] in (1.0, 0.6, 0.45) and recovery["iterations"] in (0, 200)
+    assert 0.97 * 60 <= 8 * out.stat().st_size / 2_000 <= 60  # bits per *input* Gaussian, whichever source
