@@ -145,3 +145,12 @@ def test_encode_to_a_target_with_recover(tmp_path, small_scene, capsys):
     assert [row["keep"] for row in recovery["sources"]] == [1.0, 0.6, 0.45]
     assert recovery["keep"] in (1.0, 0.6, 0.45) and recovery["iterations"] in (0, 200)
     assert 0.97 * 60 <= 8 * out.stat().st_size / 2_000 <= 60  # bits per *input* Gaussian, whichever source
+
+
+def test_recover_without_a_target_is_a_clear_error(tmp_path, small_scene, capsys):
+    ply = tmp_path / "in.ply"
+    write_ply(ply, small_scene.cloud)
+    assert main(["encode", str(ply), str(tmp_path / "out.gsc"), "--recover"]) == 2
+    err = capsys.readouterr().err
+    assert "--recover applies to a target" in err and "Traceback" not in err
+    assert not (tmp_path / "out.gsc").exists()

@@ -129,6 +129,9 @@ def run(args: argparse.Namespace) -> int:
     targets = (args.target_size, args.target_bpg, args.target_psnr)
     if any(t is not None for t in targets):
         return _run_to_target(args)
+    if args.recover:
+        raise GscodecError("--recover applies to a target (--target-size, --target-bpg or --target-psnr); at a fixed "
+                           "rate point, prune and recover first: gscodec-shac prune IN PRUNED.ply --keep SHARE")
     if args.sh_dc_only is not None and args.sh_dc_energy is not None:
         raise GscodecError("--sh-dc-only and --sh-dc-energy both choose the DC-only Gaussians: give one of them")
     default = args.rate_point is None
