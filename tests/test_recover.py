@@ -154,3 +154,31 @@ def test_recover_without_a_target_is_a_clear_error(tmp_path, small_scene, capsys
     err = capsys.readouterr().err
     assert "--recover applies to a target" in err and "Traceback" not in err
     assert not (tmp_path / "out.gsc").exists()
+
+
+def test_a_sweep_scene_can_name_its_calibration_cameras(tmp_path, small_scene):
+    """NeRF-Synthetic's test views are a file of their own: the controller and the recovery then need
+    the training cameras, not the test views (``calibration``)."""
+    from gscodec_shac.io.inria_cameras import write_inria_cameras
+    from gscodec_shac.rd import parse_sweep
+    from gscodec_shac.rd.scenes import calibration_views, prepare_scene
+    from gscodec_shac.rd.spec import SweepSpecError
+
+    ply, tests, calibration = tmp_path / "s.ply", tmp_path / "test.json", tmp_path / "train.json"
+    write_ply(ply, small_scene.cloud)
+    write_inria_cameras(tests, small_scene.cameras[:3])
+    write_inria_cameras(calibration, small_scene.cameras[3:])
+    scene = {"name": "s", "ply": str(ply), "cameras": str(tests), "test_every": 1}
+
+    def prepared(**extra):
+        spec = parse_sweep({"name": "c", "rate_points": ["shac_ladder:rp1"], "methods": ["baseline"],
+                            "scenes": [{**scene, **extra}]}, source="c.yaml", base=tmp_path)
+        return prepare_scene(spec.scenes[0], tmp_path / "out")
+
+    plain, named = prepared(), prepared(calibration=str(calibration))
+    assert [c.name for c in calibration_views(plain)] == [c.name for c in small_scene.cameras[:3]]  # the test views
+    assert [c.name for c in calibration_views(named)] == [c.name for c in small_scene.cameras[3:]]
+    assert plain.fingerprint != named.fingerprint and plain.fingerprint == prepared().fingerprint
+    with pytest.raises(SweepSpecError, match="need the scene's 'cameras'"):
+        parse_sweep({"name": "c", "rate_points": ["shac_ladder:rp1"], "methods": ["baseline"],
+                     "scenes": [{"name": "s", "ply": str(ply), "calibration": str(calibration)}]}, source="c.yaml")

@@ -94,10 +94,13 @@ def prepare_scene(spec: SceneSpec, out_dir: str | Path) -> PreparedScene:
                     write_inria_cameras(cameras, auto_orbit(read_ply(ply), orbit))
     # ground truth by identity: a user folder by its path, the synthetic one by what generated it
     images_id = f"synthetic:{stable_hash(asdict(spec.synthetic))}" if spec.synthetic is not None and images else images
-    fingerprint = stable_hash({
+    setup = {
         "ply": file_fingerprint(ply), "cameras": file_fingerprint(cameras), "images": images_id,
         "background": spec.background, "test_every": spec.test_every, "max_views": spec.max_views,
-    })
+    }
+    if spec.calibration is not None:  # only when given: the fingerprints of scenes without stay the same
+        setup["calibration"] = file_fingerprint(spec.calibration)
+    fingerprint = stable_hash(setup)
     return PreparedScene(spec, str(ply), str(cameras), fingerprint, Path(ply).stat().st_size, images)
 
 
@@ -203,7 +206,10 @@ def test_cameras(scene: PreparedScene) -> list[Camera]:
 
 
 def calibration_views(scene: PreparedScene) -> list[Camera]:
-    """The scene's cameras that are not test views (all of them when every camera is a test view)."""
+    """The scene's calibration cameras when it names them, else its cameras that are not test views
+    (all of them when every camera is a test view)."""
+    if scene.spec.calibration is not None:
+        return load_cameras(scene.spec.calibration)
     train, test = test_split(load_cameras(scene.cameras), scene.spec.test_every)
     return train or test
 

@@ -20,6 +20,8 @@ A sweep is scenes x methods x rate points::
         images: /data/mipnerf360_bonsai/images   # optional ground truth (resized with INTER_AREA)
         background: [0, 0, 0]
         test_every: 8                     # test views = every 8th camera in name order
+        calibration: null                 # optional other cameras for rate control and recovery (default:
+                                          # the cameras that are not test views)
         max_views: null                   # optional cap, evenly spaced over the test views
       - name: kacy
         ply: kacy.ply
@@ -53,7 +55,8 @@ CONVERTIBLE_SUFFIXES = (".sog", ".spz", ".splat", ".ksplat", ".json", ".pt", ".p
 SORT_METHODS = ("plas", "morton", "random", "none")
 
 _TOP_KEYS = {"name", "description", "rate_points", "settings", "scenes", "methods"}
-_SCENE_KEYS = {"name", "ply", "synthetic", "cameras", "orbit", "images", "background", "test_every", "max_views", "note"}
+_SCENE_KEYS = {"name", "ply", "synthetic", "cameras", "orbit", "images", "background", "test_every", "max_views",
+               "calibration", "note"}
 _SYNTHETIC_KEYS = {"n", "seed", "n_cameras", "width", "height", "ground_truth"}
 _ORBIT_KEYS = {"n", "width", "height", "fov_y", "elevation", "radius", "center", "up"}
 _SETTINGS_KEYS = {"sort", "preset", "anchor", "compare", "retries", "max_retries", "threads", "lpips_weights",
@@ -104,6 +107,9 @@ class SceneSpec:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     test_every: int = 8
     max_views: int | None = None
+    #: cameras the rate controller and the recovery use instead of the non-test ones (a scene whose test
+    #: views are a file of their own, like NeRF-Synthetic's official split)
+    calibration: str | None = None
     note: str = ""
 
     @property
@@ -367,6 +373,10 @@ def _scene(raw: Any, key: str, err: Where, base: Path) -> SceneSpec:
     if images is not None and cameras is None:
         raise err.error(f"{key}.images", "ground-truth images need the 'cameras' they were taken with")
     background = err.vector3(raw.get("background", [0, 0, 0]), f"{key}.background", 0.0, 1.0)
+    calibration = _path(raw["calibration"], f"{key}.calibration", err, base) \
+        if raw.get("calibration") is not None else None
+    if calibration is not None and cameras is None:
+        raise err.error(f"{key}.calibration", "calibration cameras need the scene's 'cameras' (its test views)")
     note = raw.get("note", "")
     if not isinstance(note, str):
         raise err.error(f"{key}.note", "must be a string")
@@ -375,7 +385,7 @@ def _scene(raw: Any, key: str, err: Where, base: Path) -> SceneSpec:
         background=background,
         test_every=_int(raw, "test_every", f"{key}.test_every", err, 8, 1, 10_000),
         max_views=_int(raw, "max_views", f"{key}.max_views", err, None, 1, 100_000),
-        note=note,
+        calibration=calibration, note=note,
     )
 
 
