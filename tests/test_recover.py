@@ -26,6 +26,8 @@ def test_recovery_keeps_the_share_and_restores_the_renders(small_scene, recovere
     # the fine-tune moves the kept Gaussians towards the whole model's renders
     assert recovered.psnr_recovered > recovered.psnr_pruned + 1.0
     assert recovered.summary()["iterations"] == 40
+    unmeasured = prune_and_recover(small_scene.cloud, small_scene.cameras, keep_share=0.5, iterations=0).summary()
+    assert unmeasured["psnr_pruned"] is None and unmeasured["psnr_recovered"] is None  # valid JSON, not NaN
 
 
 def test_recovery_is_deterministic(small_scene, recovered):

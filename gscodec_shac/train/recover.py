@@ -54,9 +54,12 @@ class Recovery:
     timings: dict[str, float] = field(default_factory=dict)
 
     def summary(self) -> dict[str, Any]:
+        def db(value: float) -> float | None:  # None when not measured (valid JSON)
+            return round(value, 3) if math.isfinite(value) else None
+
         return {"kept": self.kept, "dropped": self.dropped, "iterations": self.iterations, "views": self.views,
-                "seconds": round(self.seconds, 2), "psnr_pruned": round(self.psnr_pruned, 3),
-                "psnr_recovered": round(self.psnr_recovered, 3)}
+                "seconds": round(self.seconds, 2), "psnr_pruned": db(self.psnr_pruned),
+                "psnr_recovered": db(self.psnr_recovered)}
 
 
 def check_settings(keep_share: float, iterations: int) -> None:
