@@ -33,7 +33,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
@@ -70,6 +70,19 @@ class Source:
     controller_psnr: float = math.inf
 
 
+class _Coded(NamedTuple):
+    """One source's file at a target and its PSNR against the model on the judges and on the controller's views."""
+
+    source: Source
+    outcome: Outcome
+    judged: float
+    on_controller_views: float
+
+    @property
+    def bytes(self) -> int:
+        return self.outcome.stream.total_bytes()
+
+
 @dataclass
 class RecoveringController:
     """The rate controller on ``cloud`` and on its recovered versions; :meth:`encode` keeps the best file.
@@ -103,12 +116,11 @@ class RecoveringController:
         self.judges_ = self._judges(base)
         judged = {view.name for view in self.judges_}
         training = [view for view in self.views or () if view.name not in judged] or None
-        background = self.controller_options.get("background", (0.0, 0.0, 0.0))
         self._references = self._renders(self.cloud)
         for share in self.shares:
             tic = time.perf_counter()
             recovery = prune_and_recover(self.cloud, training, keep_share=share, iterations=iterations,
-                                         background=background, seed=self.seed, measure=False,
+                                         background=self._background, seed=self.seed, measure=False,
                                          progress=bool(self.controller_options.get("progress")))
             self.seconds_[f"recover_{share:g}"] = time.perf_counter() - tic
             tic = time.perf_counter()
@@ -117,6 +129,11 @@ class RecoveringController:
             self.sources_.append(Source(share, controller, recovery, self._psnr(recovery.cloud),
                                         _psnr(base._rendered_mse(recovery.cloud))))
         return self
+
+    @property
+    def _background(self) -> Sequence[float]:
+        """The scene's render background, as the controllers are given it."""
+        return self.controller_options.get("background", (0.0, 0.0, 0.0))
 
     def _judges(self, base: RateController) -> list[Camera]:
         """The controller's views and :data:`JUDGE_VIEWS` more cameras, at most :data:`JUDGE_WIDTH` wide."""
@@ -129,8 +146,7 @@ class RecoveringController:
         from gscodec_shac.render import Renderer
 
         renderer = Renderer(cloud)
-        background = self.controller_options.get("background", (0.0, 0.0, 0.0))
-        return [renderer.render(view, background=background).image for view in self.judges_]
+        return [renderer.render(view, background=self._background).image for view in self.judges_]
 
     def _psnr(self, cloud: GaussianCloud) -> float:
         """Mean-MSE PSNR of ``cloud`` against the model on the judges."""
@@ -142,9 +158,8 @@ class RecoveringController:
         if not self.sources_:
             self.fit()
         base = self.sources_[0].controller
-        tried: list[tuple[Source, Outcome, float]] = []
+        tried: list[_Coded] = []
         rows: list[dict[str, Any]] = []
-        controller_views: dict[int, float] = {}  # each file's PSNR on the controller's views, as a plain target reports
         for source in self.sources_:
             wanted = self._source_target(source, target)
             row: dict[str, Any] = {"keep": source.share}
@@ -160,18 +175,18 @@ class RecoveringController:
                 row["skipped"] = str(exc)
                 continue
             decoded = _decoded(outcome.stream, source.controller.workers)
-            measured = self._psnr(decoded)
-            controller_views[id(outcome)] = _psnr(base._rendered_mse(decoded))
-            row.update(bytes=outcome.stream.total_bytes(), measured_psnr=round(measured, 3),
-                       psnr_controller_views=round(controller_views[id(outcome)], 3))
-            tried.append((source, outcome, measured))
+            coded = _Coded(source, outcome, self._psnr(decoded), _psnr(base._rendered_mse(decoded)))
+            row.update(bytes=coded.bytes, measured_psnr=round(coded.judged, 3),
+                       psnr_controller_views=round(coded.on_controller_views, 3))
+            tried.append(coded)
         if not tried:
             raise TargetUnreachableError(f"no source reached {target.describe()}: "
                                          + "; ".join(f"keep {r['keep']:g}: {r['skipped']}" for r in rows))
-        source, outcome, measured = self._best(tried, target)
-        outcome.measured_psnr = controller_views[id(outcome)]  # against the model, on the controller's views
+        best = self._best(tried, target)
+        outcome, source = best.outcome, best.source
+        outcome.measured_psnr = best.on_controller_views  # against the model, as a plain target reports it
         outcome.recovery = {"keep": source.share, "iterations": source.recovery.iterations if source.recovery else 0,
-                            "judged_psnr": round(measured, 3), "judges": len(self.judges_), "sources": rows}
+                            "judged_psnr": round(best.judged, 3), "judges": len(self.judges_), "sources": rows}
         return outcome
 
     def _source_target(self, source: Source, target: Target) -> Target | None:
@@ -182,12 +197,12 @@ class RecoveringController:
         return Target("psnr", _psnr(left)) if left > 0 else None
 
     @staticmethod
-    def _best(tried: list[tuple[Source, Outcome, float]], target: Target) -> tuple[Source, Outcome, float]:
+    def _best(tried: list[_Coded], target: Target) -> _Coded:
         if target.kind == "bytes":  # the best quality; on a tie the smaller file
-            return max(tried, key=lambda t: (t[2], -t[1].stream.total_bytes()))
-        model = [t for t in tried if t[0].recovery is None]
-        bar = model[0][2] if model else target.value  # the model's file on the judges (its controller met the target)
-        meeting = [t for t in tried if t[2] >= bar]
+            return max(tried, key=lambda c: (c.judged, -c.bytes))
+        model = [c for c in tried if c.source.recovery is None]
+        bar = model[0].judged if model else target.value  # the model's file on the judges (its controller met the target)
+        meeting = [c for c in tried if c.judged >= bar]
         if meeting:  # the smallest file at least as good as the model's
-            return min(meeting, key=lambda t: t[1].stream.total_bytes())
-        return max(tried, key=lambda t: t[2])
+            return min(meeting, key=lambda c: c.bytes)
+        return max(tried, key=lambda c: c.judged)
