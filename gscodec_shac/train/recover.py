@@ -95,15 +95,14 @@ class _Targets:
 
 
 def _mean_psnr(cloud: GaussianCloud, views: Sequence[Camera], targets: _Targets, background: np.ndarray) -> float:
+    """Mean over ``views`` of each view's PSNR against its target (:func:`gscodec_shac.metrics.mse`; at most 120 dB)."""
+    from gscodec_shac.metrics import mse
     from gscodec_shac.render import Renderer
 
     renderer = Renderer(cloud)
-    values = []
-    for index, view in enumerate(views):
-        image = np.clip(renderer.render(view, background=background).image, 0.0, 1.0)
-        mse = float(np.mean((image - targets[index]) ** 2))
-        values.append(-10.0 * math.log10(max(mse, 1e-12)))
-    return float(np.mean(values))
+    errors = [mse(renderer.render(view, background=background).image, targets[index])
+              for index, view in enumerate(views)]
+    return float(np.mean([-10.0 * math.log10(max(error, 1e-12)) for error in errors]))
 
 
 def prune_and_recover(
