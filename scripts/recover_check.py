@@ -25,15 +25,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from gscodec_shac.camera import test_split  # noqa: E402
 from gscodec_shac.io.cameras import load_cameras  # noqa: E402
 from gscodec_shac.io.ply import read_ply  # noqa: E402
-from gscodec_shac.metrics import load_image  # noqa: E402
+from gscodec_shac.metrics import load_image, psnr  # noqa: E402
 from gscodec_shac.render import Renderer  # noqa: E402
 from gscodec_shac.train.recover import prune_and_recover  # noqa: E402
 
 
 def mean_psnr(images: list[np.ndarray], references: list[np.ndarray]) -> float:
-    """Mean over the views of each view's PSNR (the rd sweep's convention)."""
-    return float(np.mean([-10.0 * math.log10(max(float(np.mean((np.clip(a, 0, 1) - b) ** 2)), 1e-12))
-                          for a, b in zip(images, references)]))
+    """Mean over the views of each view's PSNR (:func:`gscodec_shac.metrics.psnr`, as the rd sweep scores)."""
+    return float(np.mean([psnr(a, b) for a, b in zip(images, references)]))
 
 
 def main() -> None:

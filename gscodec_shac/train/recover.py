@@ -2,7 +2,7 @@
 
 Importance pruning (:mod:`gscodec_shac.codec.importance`) drops the Gaussians that add least to
 the rendered views, but the Gaussians kept were trained next to the ones dropped: lego's most important
-45% measure 37.7 dB against the uncompressed model's renders on its held-out views, and 46.6 dB
+45% measure 37.7 dB against the uncompressed model's renders on its held-out views, and 46.7 dB
 after 200 steps of this recovery (docs/rate_control.md, "Pruning with recovery"). Post-training codecs
 (LightGaussian, POTR) therefore fine-tune what they keep. Here the targets are not photos but the
 *original model's renders* from the same views, so a scene needs no photos, only views (its
