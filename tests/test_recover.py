@@ -97,6 +97,24 @@ def test_a_psnr_target_keeps_the_smallest_file_as_good_as_the_models(chooser):
     assert outcome.measured_psnr >= 30.0 or best["keep"] != 1.0  # the model's file meets it as the controller does
 
 
+def test_a_recovered_source_below_the_models_file_is_neither_fitted_nor_coded(small_scene):
+    fresh = RecoveringController(small_scene.cloud, views=small_scene.cameras, shares=(0.5,), iterations=10,
+                                 controller_options={"workers": 2}).fit()
+    recovered = fresh.sources_[1]
+    assert recovered.controller is None and "fit_0.5" not in fresh.seconds_  # fitted on first use only
+    # 120 bits/G: the model's file measures above the recovered model itself, whose files can only be worse
+    model, row = fresh.encode(make_target(2_000, bpg=120)).recovery["sources"]
+    assert row["source_psnr"] < model["measured_psnr"] and "bytes" not in row
+    assert f"{row['source_psnr']:.2f} dB on the judges" in row["skipped"] and recovered.controller is None
+    # 30 bits/G: the model's file is far below it, so the recovered source is fitted and coded (and wins here)
+    outcome = fresh.encode(make_target(2_000, bpg=30))
+    model, row = outcome.recovery["sources"]
+    assert model["measured_psnr"] < row["source_psnr"] and recovered.controller is not None and "fit_0.5" in fresh.seconds_
+    assert row["measured_psnr"] < row["source_psnr"]  # the rule's premise: coding adds error
+    assert outcome.recovery["keep"] == 0.5
+    assert {"fit_model", "recover_0.5", "fit_0.5"} <= set(outcome.recovery["seconds"])  # where the time went
+
+
 # ------------------------------------------------------------------ the command and the sweep recipe
 def test_prune_command_writes_the_recovered_model(tmp_path, small_scene, capsys):
     source, out = tmp_path / "in.ply", tmp_path / "pruned.ply"
@@ -147,8 +165,8 @@ def test_encode_to_a_target_with_recover(tmp_path, small_scene, capsys):
                  "--json", "-q"]) == 0
     summary = json.loads(capsys.readouterr().out)
     recovery = summary["rate_control"]["recovery"]
-    assert [row["keep"] for row in recovery["sources"]] == [1.0, 0.6, 0.45]
-    assert recovery["keep"] in (1.0, 0.6, 0.45) and recovery["iterations"] in (0, 200)
+    assert [row["keep"] for row in recovery["sources"]] == [1.0, 0.45]  # RECOVER_SHARES
+    assert recovery["keep"] in (1.0, 0.45) and recovery["iterations"] in (0, 200)
     assert 0.97 * 60 <= 8 * out.stat().st_size / 2_000 <= 60  # bits per *input* Gaussian, whichever source
 
 

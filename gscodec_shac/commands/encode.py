@@ -67,10 +67,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "NeRF-synthetic scenes use 1,1,1)")
     add_up(target, "the orbit views without --cameras")
     target.add_argument("--recover", action="store_true",
-                        help="also code the model pruned to its most important 60%% and 45%% and fine-tuned to its "
+                        help="also code the model pruned to its most important 45%% and fine-tuned to its "
                         "own renders (on the cameras the quality is not judged from), and keep the file that "
-                        "measures best against the model: smaller files at equal quality, 6-13x the time of a first target "
-                        "(docs/rate_control.md, 'Pruning with recovery')")
+                        "measures best against the model: smaller files at equal quality up to about 55 bits/G, "
+                        "2-4x the time of a plain target (docs/rate_control.md, 'Pruning with recovery')")
     parser.add_argument("--prune-keep", type=float, metavar="SHARE",
                         help="keep this share of the Gaussians, in (0, 1]: those that contribute most to renders "
                         "from --cameras (else orbit views), after the rate point's opacity threshold "
