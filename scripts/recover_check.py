@@ -44,8 +44,12 @@ def main() -> None:
     parser.add_argument("--test-every", type=int, default=8)
     parser.add_argument("--shares", default="0.6,0.45,0.3")
     parser.add_argument("--steps", default="0,200")
+    parser.add_argument("--rates", default="",
+                        help="learning rates instead of the recovery's, NAME=VALUE,... (e.g. the reference's: "
+                        "lr_means=1.6e-5,lr_means_final=1.6e-6,lr_opacity=0.05,lr_scales=5e-3)")
     parser.add_argument("--out", required=True, help="JSON results")
     args = parser.parse_args()
+    rates = {name: float(value) for name, value in (item.split("=", 1) for item in args.rates.split(",") if item)}
     background = tuple(float(v) for v in args.background.split(","))
     cloud = read_ply(args.ply)
     train, test = test_split(load_cameras(args.cameras, args.images), args.test_every)
@@ -57,7 +61,7 @@ def main() -> None:
     for share in (float(v) for v in args.shares.split(",")):
         for steps in (int(v) for v in args.steps.split(",")):
             result = prune_and_recover(cloud, train, keep_share=share, iterations=steps, background=background,
-                                       measure=False, progress=True)
+                                       measure=False, progress=False, learning_rates=rates)
             renderer = Renderer(result.cloud)
             images = [renderer.render(c, background=background).image for c in test]
             rows.append({"keep": share, "steps": steps, "kept": result.kept,
@@ -66,7 +70,7 @@ def main() -> None:
                          "seconds": round(result.seconds, 1)})
             print(json.dumps(rows[-1]), flush=True)
     Path(args.out).write_text(json.dumps({"ply": args.ply, "train_views": len(train), "test_views": len(test),
-                                          "rows": rows}, indent=2))
+                                          "learning_rates": rates, "rows": rows}, indent=2))
     print("| keep | steps | Gaussians kept | PSNR vs model (dB) | PSNR vs photos (dB) | seconds |")
     print("|---|---|---|---|---|---|")
     for r in rows:

@@ -44,6 +44,17 @@ def test_no_iterations_is_importance_pruning_alone(small_scene):
     np.testing.assert_array_equal(result.cloud.sh_rest, cloud.sh_rest[rows])
 
 
+def test_learning_rates_can_be_given_and_are_checked(small_scene, recovered):
+    reference = {"lr_means": 1.6e-5, "lr_means_final": 1.6e-6, "lr_opacity": 0.05, "lr_scales": 5e-3}
+    other = prune_and_recover(small_scene.cloud, small_scene.cameras, keep_share=0.5, iterations=40, measure=False,
+                              learning_rates=reference)
+    assert not np.array_equal(other.cloud.opacities, recovered.cloud.opacities)  # the rates reach the trainer
+    for bad, match in (({"lr_bogus": 1.0}, "unknown learning rate 'lr_bogus'"), ({"lr_opacity": -1.0}, "positive"),
+                       ({"lr_scales": float("nan")}, "positive")):
+        with pytest.raises(ValidationError, match=match):
+            prune_and_recover(small_scene.cloud, small_scene.cameras, keep_share=0.5, iterations=1, learning_rates=bad)
+
+
 @pytest.mark.parametrize("share, steps, match", [(0.0, 10, "keep share"), (1.5, 10, "keep share"),
                                                  (float("nan"), 10, "keep share"), (0.5, -1, "iterations")])
 def test_bad_recovery_settings_are_clear_errors(small_scene, share, steps, match):

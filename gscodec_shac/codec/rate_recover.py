@@ -5,7 +5,7 @@ Gaussians and codes the rest as they were trained: next to the ones dropped. Rec
 first (:func:`gscodec_shac.train.recover.prune_and_recover`: keep the most important share, then
 fine-tune the kept ones towards the model's own renders) makes a smaller model that renders
 nearly like the whole one: lego's most important 45% measure 37.7 dB against the model's renders
-on its held-out views pruned alone, 46.7 dB recovered. Which source codes best depends on the
+on its held-out views pruned alone, 46.9 dB recovered. Which source codes best depends on the
 target: a small file gains from the smaller model, a large one is limited by what the recovery
 could not restore.
 

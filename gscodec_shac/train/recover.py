@@ -2,7 +2,7 @@
 
 Importance pruning (:mod:`gscodec_shac.codec.importance`) drops the Gaussians that add least to
 the rendered views, but the Gaussians kept were trained next to the ones dropped: lego's most important
-45% measure 37.7 dB against the uncompressed model's renders on its held-out views, and 46.7 dB
+45% measure 37.7 dB against the uncompressed model's renders on its held-out views, and 46.9 dB
 after 200 steps of this recovery (docs/rate_control.md, "Pruning with recovery"). Post-training codecs
 (LightGaussian, POTR) therefore fine-tune what they keep. Here the targets are not photos but the
 *original model's renders* from the same views, so a scene needs no photos, only views (its
@@ -11,9 +11,13 @@ rather than drifting towards the photos.
 
 The fine-tune is the trainer's step (:class:`~gscodec_shac.train.trainer.Trainer`: render, ``0.8 L1
 + 0.2 D-SSIM``, backward through the CPU rasteriser, Adam) with every SH degree active from the
-first step, no densification, pruning or opacity reset, and the position learning rate starting
-ten times below the reference's (``1.6e-5 x extent``, decayed to ``1.6e-6 x extent``): the
-Gaussians are already where the model put them. Seeded: the same inputs give the same model.
+first step and no densification, pruning or opacity reset. The learning rates are a fine-tune's,
+not a training's from scratch: positions from ``4.8e-5 x extent`` (the reference starts at
+``1.6e-4``) decayed tenfold; opacity and scales at 0.3x and 0.5x the reference's
+(Adam moves every parameter by about its rate each step, which at the reference's rates kept the
+recovery from settling: bonsai's 45% restored 40.6 dB on its held-out views with them, 43.0 dB
+with these; the chair's 47.5 and 48.0 dB; docs/rate_control.md, "Pruning with recovery"). Seeded:
+the same inputs give the same model.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -32,8 +36,10 @@ from gscodec_shac.gaussians import GaussianCloud
 #: The views the recovery renders its targets from: at most this many, at most this wide.
 MAX_VIEWS = 200
 MAX_WIDTH = 800
-#: Starting position learning rate (times the views' extent); the reference starts at 1.6e-4.
-LR_MEANS = 1.6e-5
+#: The fine-tune's learning rates where they differ from the trainer's (the reference's): positions
+#: (times the views' extent) from 4.8e-5 to 4.8e-6 (reference 1.6e-4 to 1.6e-6); opacity and scales
+#: at 0.3x and 0.5x the reference's 0.05 and 5e-3. ``prune_and_recover(learning_rates=...)`` overrides them.
+LEARNING_RATES = {"lr_means": 4.8e-5, "lr_means_final": 4.8e-6, "lr_opacity": 0.015, "lr_scales": 2.5e-3}
 DEFAULT_ITERATIONS = 200
 
 
@@ -62,12 +68,23 @@ class Recovery:
                 "psnr_recovered": db(self.psnr_recovered)}
 
 
-def check_settings(keep_share: float, iterations: int) -> None:
-    """One clear error for a keep share outside (0, 1] or a negative iteration count."""
+def check_settings(keep_share: float, iterations: int, learning_rates: Mapping[str, float] | None = None) -> None:
+    """One clear error for a keep share outside (0, 1], a negative iteration count or a learning rate
+    that is not a positive number of the trainer's (``lr_means``, ``lr_opacity``, ...)."""
+    from dataclasses import fields
+
+    from gscodec_shac.train.trainer import TrainConfig
+
     if not (isinstance(keep_share, (int, float)) and math.isfinite(keep_share) and 0.0 < keep_share <= 1.0):
         raise ValidationError(f"the keep share must lie in (0, 1], got {keep_share!r}")
     if not (isinstance(iterations, int) and iterations >= 0):
         raise ValidationError(f"the recovery iterations must be an integer >= 0, got {iterations!r}")
+    names = sorted(f.name for f in fields(TrainConfig) if f.name.startswith("lr_"))
+    for name, value in (learning_rates or {}).items():
+        if name not in names:
+            raise ValidationError(f"unknown learning rate {name!r}; the trainer's are {', '.join(names)}")
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            raise ValidationError(f"the learning rate {name} must be a positive number, got {value!r}")
 
 
 def recovery_views(cloud: GaussianCloud, cameras: Sequence[Camera] | None) -> list[Camera]:
@@ -115,12 +132,14 @@ def prune_and_recover(
     seed: int = 0,
     measure: bool = True,
     progress: bool = False,
+    learning_rates: Mapping[str, float] | None = None,
 ) -> Recovery:
     """Keep the most important ``keep_share`` of ``cloud`` (ranked on ``cameras``, else orbit views)
     and fine-tune the kept Gaussians for ``iterations`` steps towards the original's renders.
 
     ``measure``: also render the pruned and the recovered model on the views (their PSNR against
-    the original, :attr:`Recovery.psnr_pruned` / ``psnr_recovered``).
+    the original, :attr:`Recovery.psnr_pruned` / ``psnr_recovered``). ``learning_rates``: the
+    trainer's ``lr_*`` settings to use instead of :data:`LEARNING_RATES` and the trainer's defaults.
     """
     from tqdm import tqdm
 
@@ -128,7 +147,8 @@ def prune_and_recover(
     from gscodec_shac.render import Renderer
     from gscodec_shac.render.renderer import parse_background
 
-    check_settings(keep_share, iterations)
+    check_settings(keep_share, iterations, learning_rates)
+    rates = {**LEARNING_RATES, **(learning_rates or {})}
     tic = time.perf_counter()
     bg = parse_background(background)
     views = recovery_views(cloud, cameras)
@@ -145,7 +165,7 @@ def prune_and_recover(
     del original
     timings["targets"] = time.perf_counter() - tic - timings["importance"]
     before = _mean_psnr(pruned, views, targets, bg) if measure else float("nan")
-    recovered = _fine_tune(pruned, views, targets, bg, iterations, seed, progress, tqdm)
+    recovered = _fine_tune(pruned, views, targets, bg, iterations, seed, rates, progress, tqdm)
     timings["fine_tune"] = time.perf_counter() - tic - sum(timings.values())
     after = _mean_psnr(recovered, views, targets, bg) if measure else float("nan")
     return Recovery(recovered, rows.size, cloud.num_gaussians - rows.size, iterations, len(views),
@@ -153,7 +173,7 @@ def prune_and_recover(
 
 
 def _fine_tune(pruned: GaussianCloud, views: list[Camera], targets: _Targets, background: np.ndarray,
-               iterations: int, seed: int, progress: bool, tqdm: Any) -> GaussianCloud:
+               iterations: int, seed: int, rates: Mapping[str, float], progress: bool, tqdm: Any) -> GaussianCloud:
     """``iterations`` trainer steps on ``pruned`` towards ``targets`` (see the module docstring)."""
     from gscodec_shac.train.data import Capture, camera_extent
     from gscodec_shac.train.model import GaussianModel
@@ -166,7 +186,7 @@ def _fine_tune(pruned: GaussianCloud, views: list[Camera], targets: _Targets, ba
     capture = Capture("recover", "views", list(views), [], targets, [], empty, empty,  # type: ignore[arg-type]
                       np.asarray(background, dtype=np.float64), camera_extent(views)[1])
     never = 1 << 40
-    config = TrainConfig(iterations=iterations, sh_degree=pruned.sh_degree, seed=seed, lr_means=LR_MEANS,
+    config = TrainConfig(iterations=iterations, sh_degree=pruned.sh_degree, seed=seed, **rates,
                          sh_interval=1, densify_until=0, opacity_reset_interval=never,
                          checkpoint_every=never, log_every=never)
     trainer = Trainer(capture, config, model=model)
