@@ -16,7 +16,7 @@ not a training's from scratch: positions from ``4.8e-5 x extent`` (the reference
 ``1.6e-4``) decayed tenfold; opacity and scales at 0.3x and 0.5x the reference's
 (Adam moves every parameter by about its rate each step, which at the reference's rates kept the
 recovery from settling: bonsai's 45% restored 40.6 dB on its held-out views with them, 43.0 dB
-with these; the chair's 47.5 and 48.0 dB; docs/rate_control.md, "Pruning with recovery"). Seeded:
+with these; the chair's 47.7 and 48.1 dB; docs/rate_control.md, "Pruning with recovery"). Seeded:
 the same inputs give the same model.
 """
 
