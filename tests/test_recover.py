@@ -137,7 +137,8 @@ def test_a_recovered_source_below_the_models_file_is_neither_fitted_nor_coded(sm
     # 30 bits/G: the model's file is far below it, so the recovered source is fitted and coded (and wins here)
     outcome = fresh.encode(make_target(2_000, bpg=30))
     model, row = outcome.recovery["sources"]
-    assert model["measured_psnr"] < row["source_psnr"] and recovered.controller is not None and "fit_0.5" in fresh.seconds_
+    assert model["measured_psnr"] < row["source_psnr"]
+    assert recovered.controller is not None and "fit_0.5" in fresh.seconds_
     assert row["measured_psnr"] < row["source_psnr"]  # the rule's premise: coding adds error
     assert outcome.recovery["keep"] == 0.5
     assert {"fit_model", "recover_0.5", "fit_0.5"} <= set(outcome.recovery["seconds"])  # where the time went

@@ -25,10 +25,10 @@ the controller's orbit views).
 A PSNR target is met as the controller meets it, on its own views: the model's file is the
 controller's answer, and a recovered source's file replaces it only when it is smaller, at least
 as good on the judges (which measure lower than the controller's coarse views: lego's plain 38 dB
-file measured 37.86 dB on them) and meets the target on the controller's views too. Each recovered source's controller is given the
-target its coding may still spend: the target's MSE minus what the recovery left on the
-controller's views (MSEs of independent errors add); a source that already misses the target
-is not tried.
+file measured 37.86 dB on them) and meets the target on the controller's views too. Each
+recovered source's controller is given the target its coding may still spend: the target's MSE
+minus what the recovery left on the controller's views (MSEs of independent errors add); a
+source that already misses the target is not tried.
 """
 
 from __future__ import annotations
@@ -220,9 +220,10 @@ class RecoveringController:
             return max(tried, key=lambda c: (c.judged, -c.bytes))
         model = [c for c in tried if c.source.recovery is None]
         bar = model[0].judged if model else target.value  # the model's file on the judges (its controller met the target)
-        # the smallest file at least as good as the model's on the judges that also meets the target where the
-        # controller measures it (the PSNR reported), as the model's file does
-        meeting = [c for c in tried if c.judged >= bar and (c.source.recovery is None or c.on_controller_views >= target.value)]
+        # the smallest file at least as good as the model's on the judges that also meets the target where
+        # the controller measures it (the PSNR reported), as the model's file does
+        meeting = [c for c in tried if c.judged >= bar
+                   and (c.source.recovery is None or c.on_controller_views >= target.value)]
         if meeting:
             return min(meeting, key=lambda c: c.bytes)
         return max(tried, key=lambda c: c.judged)
