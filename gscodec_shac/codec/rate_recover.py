@@ -180,7 +180,7 @@ class RecoveringController:
             if wanted is None:
                 row["skipped"] = "the recovered model alone misses the target"
                 continue
-            model = next((c for c in tried if c.source.recovery is None), None)
+            model = _model_file(tried)
             if source.recovery is not None and model is not None and source.psnr <= model.judged:
                 row["skipped"] = (f"the recovered model alone measures {source.psnr:.2f} dB on the judges, "
                                   f"the model's file {model.judged:.2f} dB")
@@ -218,8 +218,8 @@ class RecoveringController:
     def _best(tried: list[_Coded], target: Target) -> _Coded:
         if target.kind == "bytes":  # the best quality; on a tie the smaller file
             return max(tried, key=lambda c: (c.judged, -c.bytes))
-        model = [c for c in tried if c.source.recovery is None]
-        bar = model[0].judged if model else target.value  # the model's file on the judges (its controller met the target)
+        model = _model_file(tried)
+        bar = model.judged if model else target.value  # the model's file on the judges (its controller met the target)
         # the smallest file at least as good as the model's on the judges that also meets the target where
         # the controller measures it (the PSNR reported), as the model's file does
         meeting = [c for c in tried if c.judged >= bar
@@ -227,3 +227,8 @@ class RecoveringController:
         if meeting:
             return min(meeting, key=lambda c: c.bytes)
         return max(tried, key=lambda c: c.judged)
+
+
+def _model_file(tried: list[_Coded]) -> _Coded | None:
+    """The model's own file among the coded ones (None when its controller could not reach the target)."""
+    return next((c for c in tried if c.source.recovery is None), None)
