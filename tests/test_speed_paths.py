@@ -26,6 +26,7 @@ from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.codec.grid.base import CODECS
 from gscodec_shac.codec.header import read_header
 from gscodec_shac.codec.quantize import Quantizer
+from gscodec_shac.codec.rate_points import load_rate_point
 from gscodec_shac.io.ply import cloud_to_structured, read_ply, write_ply
 from gscodec_shac.shac.base import STAGES
 
@@ -166,6 +167,27 @@ def test_encodes_sharing_a_cache_give_the_bytes_of_fresh_encodes():
         fresh = Encoder(point, sh_stage=stage, fit_stage=False, codec_options=gray)
         assert shared.encode(cloud).to_bytes() == fresh.encode(cloud).to_bytes(), point
     assert any(key[0] == "__work__" for key in cache)
+
+
+def test_given_stage_features_give_the_bytes_of_features_computed_by_the_encoder():
+    """The rate controller hands its trial encodes the whole cloud's SHAC-PCA features (issue 25):
+    gathered in grid order, pruned or DC-only, they must code to the same bytes."""
+    from gscodec_shac.codec import Encoder
+    from gscodec_shac.shac import make_stage
+
+    cloud = read_ply(ROOT / "tests" / "fixtures" / "streams" / "input_sh3.ply")
+    stage = make_stage("pca", energy_retention=0.97).fit(cloud.ac_matrix())
+    features = stage.transform(cloud.ac_matrix())
+    gray = {"layout": "gray"}
+    for point in ["shac_ladder:rp4", "paper_table3:rp2"]:
+        for extra in ({}, {"keep_share": 0.6}, {"dc_only_energy": 0.01}):
+            rate_point = load_rate_point(point).with_overrides(**extra) if extra else point
+            given = Encoder(rate_point, sh_stage=stage, fit_stage=False, codec_options=gray, stage_features=features)
+            own = Encoder(rate_point, sh_stage=stage, fit_stage=False, codec_options=gray)
+            assert given.encode(cloud).to_bytes() == own.encode(cloud).to_bytes(), (point, extra)
+    wrong = Encoder("shac_ladder:rp4", sh_stage=stage, fit_stage=False, stage_features=features[:-1])
+    with pytest.raises(ValueError, match="rows for a cloud of 300"):
+        wrong.encode(cloud)
 
 
 def test_scheduler_runs_the_costliest_pending_piece_first():

@@ -173,7 +173,9 @@ class Encoder:
     keeps coded chunks by their planes and settings, so a chunk whose input did not change
     is not coded again. ``views`` (cameras) or ``importance`` (one value per input Gaussian) serve
     importance pruning (rate point ``prune.keep_share``, :mod:`.importance`): without either it is
-    measured on orbit views. After
+    measured on orbit views. ``stage_features``: a fitted ``sh_stage``'s features of every row of the
+    cloud :meth:`encode` is given (what ``sh_stage.transform`` returns for them, e.g. the rate
+    controller's, which it computed for its probe): they are gathered instead of computed again. After
     :meth:`encode`, ``order_`` holds the input row of each decoded Gaussian and
     ``timings_`` the seconds per step.
     """
@@ -194,6 +196,7 @@ class Encoder:
         views: Sequence[Camera] | None = None,
         importance: np.ndarray | None = None,
         sh_metric: np.ndarray | None = None,
+        stage_features: np.ndarray | None = None,
     ) -> None:
         self._stage_instance = sh_stage if isinstance(sh_stage, ShStage) else None
         name = self._stage_instance.name if self._stage_instance is not None else sh_stage
@@ -213,6 +216,7 @@ class Encoder:
         self.importance = importance
         #: the AC columns' error metric a fitted SHAC-PCA stage is fitted in (:mod:`gscodec_shac.shac.view_metric`)
         self.sh_metric = sh_metric
+        self.stage_features = stage_features
         self._measured: tuple[GaussianCloud, np.ndarray] | None = None
         self._dc_only: np.ndarray | None = None
         self._dc_only_shape: tuple[int, int] = (0, 0)
@@ -239,6 +243,8 @@ class Encoder:
         """
         rp = self.rate_point
         n_input, sh_degree = cloud.num_gaussians, cloud.sh_degree
+        if self.stage_features is not None and len(self.stage_features) != n_input:
+            raise ValueError(f"stage_features has {len(self.stage_features)} rows for a cloud of {n_input:,} Gaussians")
         if release_input:
             cloud = cloud.take()
         self._codecs, self._jobs, self.timings_ = {}, [], {}
@@ -452,11 +458,13 @@ class Encoder:
 
     def _stage_features(self, stage: ShStage, cloud: GaussianCloud, ac: GatheredRows, key: str) -> np.ndarray:
         """The stage fitted on (or, fitted already, applied to) the rows ``ac`` of ``cloud``."""
+        fit = self.fit_stage or self._stage_instance is None
+        if not fit and self.stage_features is not None:  # the caller's features of the input rows, gathered
+            return np.asarray(self.stage_features[ac.index])
         if not stage.reads_row_blocks or stage.uses_dc:
             ac = np.asarray(ac)
         if stage.uses_dc:
             ac = np.concatenate([cloud.sh_dc, ac], axis=1)
-        fit = self.fit_stage or self._stage_instance is None
         if fit and stage.uses_positions:
             stage.set_positions(cloud.means)
         if fit:

@@ -358,6 +358,8 @@ class RateController:
         self._probe_decoded: tuple[np.ndarray, GaussianCloud] | None = None  # (rows, decoded) at SENSITIVITY_QP
         self._sh_points: dict[int, dict[int, float]] = {}  # SH feature (-1: side information) -> {QP: bytes}
         self._sh_ranges: np.ndarray | None = None  # the whole cloud's range of each SH feature
+        #: the fitted stage's features of every row (``stage_.transform``), given to the trial encodes
+        self._stage_features: np.ndarray | None = None
         self._probe_rows: np.ndarray | None = None  # the probe's rows of the cloud
         self._probe_rates: dict[str, dict[int, float]] = {}  # QP attribute -> {probe QP: bytes, whole cloud}
         #: the rendered MSE of each attribute of the probe as decoded (the sensitivities' numerators)
@@ -637,12 +639,14 @@ class RateController:
         return self.sh_attribute == "sh_features"
 
     def _sh_values(self) -> np.ndarray | None:
-        """The whole cloud's SH features as the encoder quantises them (YCbCr triplets where it applies)."""
+        """The whole cloud's SH features as the encoder quantises them (YCbCr triplets where it applies);
+        the stage's own features are kept (:attr:`_stage_features`)."""
         if self.stage_ is None:
             return None
         ac = self.cloud.ac_matrix()
         features = np.asarray(self.stage_.transform(np.concatenate([self.cloud.sh_dc, ac], axis=1)
                                                     if self.stage_.uses_dc else ac))
+        self._stage_features = features  # the trial encodes gather theirs from these
         if self.template.color == "ycbcr" and self.stage_.ycbcr_applies(features.shape[1]):
             features = qz.triplets_to_ycbcr(features)
         return features
@@ -1054,7 +1058,8 @@ class RateController:
     def _encode(self, plan: Plan, target: Target) -> Bitstream:
         """One real encode of ``plan``; the header records the target (the settings are in its rate point)."""
         encoder = Encoder(plan.rate_point, sh_stage=self.stage_, fit_stage=False, workers=self.workers,
-                          progress=self.progress, chunk_cache=self._cache, importance=self.importance_)
+                          progress=self.progress, chunk_cache=self._cache, importance=self.importance_,
+                          stage_features=self._stage_features)
         stream = encoder.encode(self.cloud)
         self._last_order = encoder.order_
         stream.header["rate_control"] = {"target": {"kind": target.kind, "value": target.value},
