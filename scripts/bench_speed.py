@@ -42,6 +42,7 @@ import os
 import shlex
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -99,16 +100,18 @@ def _sample_tree_peak(pid: int, done: threading.Event, peak: list[int]) -> None:
         peak[0], peak[1] = max(peak[0], rss), max(peak[1], pss)
 
 
-def measured(command: list[str], nice: int, root: Path = ROOT) -> dict:
+def measured(command: list[str], nice: int, root: Path = ROOT, *, keep_output: bool = False) -> dict:
     """Run ``command`` with the checkout ``root`` first on the path: wall seconds, CPU seconds (with
     its reaped children) and peak memory (GB): RSS of that process alone (``os.wait4``), and RSS
-    and PSS of it with its worker processes, summed (``/proc`` sampled every 50 ms)."""
+    and PSS of it with its worker processes, summed (``/proc`` sampled every 50 ms); the end of its
+    last line of output, and with ``keep_output`` its whole standard output (``stdout``)."""
     env = {**os.environ, "PYTHONPATH": str(root) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     load = os.getloadavg()[0]
     tic = time.perf_counter()
     # cwd = the checkout: ``python -m`` / ``-c`` put the working directory first on sys.path
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, cwd=root,
-                               preexec_fn=(lambda: os.nice(nice)) if nice else None)
+    errors = tempfile.TemporaryFile() if keep_output else None  # the progress bars and messages, apart
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=errors or subprocess.STDOUT, env=env,
+                               cwd=root, preexec_fn=(lambda: os.nice(nice)) if nice else None)
     done, tree_peak = threading.Event(), [0, 0]
     sampler = threading.Thread(target=_sample_tree_peak, args=(process.pid, done, tree_peak), daemon=True)
     sampler.start()
@@ -118,13 +121,20 @@ def measured(command: list[str], nice: int, root: Path = ROOT) -> dict:
     _, status, usage = os.wait4(process.pid, 0)
     wall = time.perf_counter() - tic
     process.returncode = os.waitstatus_to_exitcode(status)
+    if errors is not None:
+        errors.seek(0)
+        messages = errors.read()
+        errors.close()
+        if process.returncode != 0:
+            output = messages
     if process.returncode != 0:
         raise SystemExit(f"error: {shlex.join(command)} failed ({process.returncode}): {output.decode()[-400:]}")
-    return {"wall_s": round(wall, 3), "cpu_s": round(usage.ru_utime + usage.ru_stime, 3),
-            "peak_rss_gb": round(usage.ru_maxrss / 1024**2, 3),
-            "peak_tree_rss_gb": round(max(tree_peak[0], usage.ru_maxrss * 1024) / 1024**3, 3),
-            "peak_tree_pss_gb": round(tree_peak[1] / 1024**3, 3), "load": round(load, 2),
-            "output": output.decode().strip().splitlines()[-1][-200:] if output.strip() else ""}
+    row = {"wall_s": round(wall, 3), "cpu_s": round(usage.ru_utime + usage.ru_stime, 3),
+           "peak_rss_gb": round(usage.ru_maxrss / 1024**2, 3),
+           "peak_tree_rss_gb": round(max(tree_peak[0], usage.ru_maxrss * 1024) / 1024**3, 3),
+           "peak_tree_pss_gb": round(tree_peak[1] / 1024**3, 3), "load": round(load, 2),
+           "output": output.decode().strip().splitlines()[-1][-200:] if output.strip() else ""}
+    return row | {"stdout": output.decode()} if keep_output else row
 
 
 def chosen_rate_point(stream: Path, out: Path) -> Path | None:
