@@ -43,7 +43,7 @@ def encode_command(model: str, out: Path, bpg: float, cameras: str, background: 
                    recover: bool) -> list[str]:
     """The ``gscodec-shac encode`` command line of one measured run."""
     command = [sys.executable, "-m", "gscodec_shac", "encode", model, str(out), "--target-bpg", f"{bpg:g}",
-               "--cameras", cameras, "--json"]
+               "--cameras", cameras, "--json", "--force"]
     if background:
         command += ["--background", background]
     return command + (["--recover"] if recover else [])
