@@ -35,6 +35,18 @@ def mean_psnr(images: list[np.ndarray], references: list[np.ndarray]) -> float:
     return float(np.mean([psnr(a, b) for a, b in zip(images, references)]))
 
 
+def parse_rates(parser: argparse.ArgumentParser, text: str) -> dict[str, float]:
+    """``NAME=VALUE,...`` -> {name: value}; a malformed item stops with one argparse error naming it."""
+    rates = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        name, _, value = item.partition("=")
+        try:
+            rates[name.strip()] = float(value)
+        except ValueError:
+            parser.error(f"--rates: {item!r} is not NAME=VALUE with a number (e.g. lr_opacity=0.015)")
+    return rates
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("ply")
@@ -49,7 +61,7 @@ def main() -> None:
                         "lr_means=1.6e-5,lr_means_final=1.6e-6,lr_opacity=0.05,lr_scales=5e-3)")
     parser.add_argument("--out", required=True, help="JSON results")
     args = parser.parse_args()
-    rates = {name: float(value) for name, value in (item.split("=", 1) for item in args.rates.split(",") if item)}
+    rates = parse_rates(parser, args.rates)
     background = tuple(float(v) for v in args.background.split(","))
     cloud = read_ply(args.ply)
     train, test = test_split(load_cameras(args.cameras, args.images), args.test_every)

@@ -234,3 +234,17 @@ def test_a_sweep_scene_can_name_its_calibration_cameras(tmp_path, small_scene):
     with pytest.raises(SweepSpecError, match="need the scene's 'cameras'"):
         parse_sweep({"name": "c", "rate_points": ["shac_ladder:rp1"], "methods": ["baseline"],
                      "scenes": [{"name": "s", "ply": str(ply), "calibration": str(calibration)}]}, source="c.yaml")
+
+
+def test_recover_checks_rates_option_names_a_malformed_item():
+    import argparse
+
+    from tests.conftest import load_script
+
+    recover_check = load_script("recover_check")
+    parser = argparse.ArgumentParser()
+    assert recover_check.parse_rates(parser, "lr_opacity=0.015, lr_scales=2.5e-3,") == {"lr_opacity": 0.015,
+                                                                                        "lr_scales": 2.5e-3}
+    for bad in ("lr_opacity", "lr_scales=abc"):
+        with pytest.raises(SystemExit):
+            recover_check.parse_rates(parser, bad)
