@@ -21,7 +21,6 @@ the ratio recover / plain, and writes every row to ``OUT/bench_recover.json`` an
 from __future__ import annotations
 
 import argparse
-import csv
 import hashlib
 import json
 import statistics
@@ -32,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
-from bench_speed import measured  # noqa: E402
+from bench_speed import measured, write_results  # noqa: E402
 
 KINDS = ("plain", "recover")
 COLUMNS = ("bpg_target", "kind", "round", "wall_s", "cpu_s", "peak_rss_gb", "peak_tree_rss_gb", "load", "bytes",
@@ -100,12 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     for bpg, line in summary.items():
         print(f"{bpg:6g} bits/G: plain {line['plain']['wall_s']:.2f} s, --recover {line['recover']['wall_s']:.2f} s: "
               f"{line['ratio_wall']:.2f}x wall, {line['ratio_cpu']:.2f}x CPU (medians of {args.repeat})")
-    (args.out / "bench_recover.json").write_text(json.dumps({"rows": rows, "medians": summary}, indent=1) + "\n")
-    with open(args.out / "bench_recover.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=COLUMNS, extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows(rows)
-    print(f"wrote {args.out / 'bench_recover.json'} and .csv")
+    write_results(args.out / "bench_recover", {"rows": rows, "medians": summary}, rows, list(COLUMNS))
     return 0
 
 

@@ -46,6 +46,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -135,6 +136,18 @@ def measured(command: list[str], nice: int, root: Path = ROOT, *, keep_output: b
            "peak_tree_pss_gb": round(tree_peak[1] / 1024**3, 3), "load": round(load, 2),
            "output": output.decode().strip().splitlines()[-1][-200:] if output.strip() else ""}
     return row | {"stdout": output.decode()} if keep_output else row
+
+
+def write_results(stem: Path, document: Any, rows: list[dict], fields: list[str]) -> None:
+    """``document`` as ``STEM.json`` and ``rows`` (their ``fields``; a dict or list value as JSON) as
+    ``STEM.csv``; says so."""
+    stem.with_suffix(".json").write_text(json.dumps(document, indent=1) + "\n")
+    with open(stem.with_suffix(".csv"), "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=fields, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows({key: json.dumps(value) if isinstance(value, (dict, list)) else value
+                          for key, value in row.items()} for row in rows)
+    print(f"wrote {stem.with_suffix('.json')} and .csv")
 
 
 def chosen_rate_point(stream: Path, out: Path) -> Path | None:
@@ -314,13 +327,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{size:>5} ratio decode / spz_read: {decode['wall_s'] / read['wall_s']:.2f} (wall), "
                   f"{decode['cpu_s'] / read['cpu_s']:.2f} (cpu); encode / spz_write: "
                   f"{enc['wall_s'] / write['wall_s']:.2f} (wall)")
-    (args.out / "bench_speed.json").write_text(json.dumps(rows, indent=1) + "\n")
-    with open(args.out / "bench_speed.csv", "w", newline="") as handle:
-        fields = ["size", "step", "wall_s", "cpu_s", "peak_rss_gb", "peak_tree_rss_gb", "peak_tree_pss_gb", "load", "same_bytes", "output"]
-        writer = csv.DictWriter(handle, fieldnames=fields, extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows(rows)
-    print(f"wrote {args.out / 'bench_speed.json'} and .csv")
+    write_results(args.out / "bench_speed", rows, rows, ["size", "step", "wall_s", "cpu_s", "peak_rss_gb",
+                  "peak_tree_rss_gb", "peak_tree_pss_gb", "load", "same_bytes", "output"])
     return 0
 
 

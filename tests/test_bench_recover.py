@@ -43,3 +43,14 @@ def test_ratios_are_of_the_medians_per_target():
     assert out[40]["recover"] == {"wall_s": 36, "cpu_s": 66}
     assert out[40]["ratio_wall"] == pytest.approx(3.0) and out[40]["ratio_cpu"] == pytest.approx(3.3)
     assert out[100]["ratio_wall"] == pytest.approx(2.5) and out[100]["ratio_cpu"] == pytest.approx(3.0)
+
+
+def test_results_are_written_as_json_and_csv(tmp_path):
+    import csv
+    import json
+
+    rows = [{"bpg_target": 40.0, "kind": "plain", "seconds": {"fit": 1.5}, "other": "left out of the CSV"}]
+    bench_speed.write_results(tmp_path / "bench", {"rows": rows}, rows, ["bpg_target", "kind", "seconds"])
+    assert json.loads((tmp_path / "bench.json").read_text()) == {"rows": rows}
+    with open(tmp_path / "bench.csv", newline="") as handle:
+        assert list(csv.DictReader(handle)) == [{"bpg_target": "40.0", "kind": "plain", "seconds": '{"fit": 1.5}'}]
