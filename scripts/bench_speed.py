@@ -17,7 +17,9 @@ its children, from ``os.wait4``) and peak RSS:
 plus ``startup``: ``gscodec-shac decode`` of a 300-Gaussian fixture stream (start-up cost).
 ``--ladder`` also encodes every point of the rate-point file of ``--rate-point`` (``encode_rpK``,
 the bar "any ``shac_ladder`` point"), and ``--target-psnr P`` a PSNR target (``target_psnr``,
-with the fixed encode of its chosen settings, ``chosen_fixed_psnr``, and their ratio).
+with the fixed encode of its chosen settings, ``chosen_fixed_psnr``, and their ratio; ``--repeat R``
+runs that pair R times, each target run followed by its fixed encode, and prints the ratio of the
+medians too).
 ``--baseline ../main`` runs the encode, every decode step and the target encode under that
 checkout too, right before ours (the baseline's stream is overwritten by ours, except the target
 stream, ``_target_baseline.gsc``; the two fixed encodes' sha256 are compared and printed), and
@@ -40,6 +42,7 @@ import hashlib
 import json
 import os
 import shlex
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -136,6 +139,28 @@ def measured(command: list[str], nice: int, root: Path = ROOT, *, keep_output: b
            "peak_tree_pss_gb": round(tree_peak[1] / 1024**3, 3), "load": round(load, 2),
            "output": output.decode().strip().splitlines()[-1][-200:] if output.strip() else ""}
     return row | {"stdout": output.decode()} if keep_output else row
+
+
+def psnr_target_ratios(size: str, ply: Path, args: argparse.Namespace, cli: list[str], record: Any) -> None:
+    """``--target-psnr``: the target encode, then a fixed encode of the settings it chose, ``--repeat``
+    times in turn (rows ``target_psnr`` and ``chosen_fixed_psnr``); prints each pair's ratio and the
+    ratio of the medians."""
+    aimed = ply.with_name(f"s{size}_target_psnr.gsc")
+    pairs = []
+    for _ in range(max(1, args.repeat)):
+        target = record(size, "target_psnr", measured(
+            [*cli, "encode", str(ply), str(aimed), "--target-psnr", str(args.target_psnr), "--force"], args.nice))
+        chosen = chosen_rate_point(aimed, ply.with_name("chosen_psnr.yaml"))
+        if chosen is None:
+            return
+        pairs.append((target, record(size, "chosen_fixed_psnr", measured(
+            [*cli, "encode", str(ply), str(aimed.with_name(aimed.stem + "_chosen_fixed.gsc")), "-r", f"{chosen}:chosen",
+             "--force"], args.nice))))
+    for key, unit in (("wall_s", "wall"), ("cpu_s", "cpu")):
+        each = ", ".join(f"{target[key] / own[key]:.2f}" for target, own in pairs)
+        targets, owns = (statistics.median(row[key] for row in rows) for rows in zip(*pairs))
+        print(f"{size:>5} ratio PSNR target / fixed encode of its own chosen settings ({unit}): {each}; "
+              f"of the medians {targets / owns:.2f}", flush=True)
 
 
 def write_results(stem: Path, document: Any, rows: list[dict], fields: list[str]) -> None:
@@ -258,17 +283,7 @@ def main(argv: list[str] | None = None) -> int:
                                                          "--sh", "pca", "--er", "0.97", "--force"], args.nice))
                 rows[-1]["bytes"] = out.stat().st_size
         if args.target_psnr is not None:
-            aimed_psnr = args.out / size / f"s{size}_target_psnr.gsc"
-            target = record(size, "target_psnr", measured(
-                [*cli, "encode", str(ply), str(aimed_psnr), "--target-psnr", str(args.target_psnr), "--force"],
-                args.nice))
-            chosen = chosen_rate_point(aimed_psnr, args.out / size / "chosen_psnr.yaml")
-            if chosen is not None:
-                own = record(size, "chosen_fixed_psnr", measured(
-                    [*cli, "encode", str(ply), str(aimed_psnr.with_name(aimed_psnr.stem + "_chosen_fixed.gsc")),
-                     "-r", f"{chosen}:chosen", "--force"], args.nice))
-                print(f"{size:>5} ratio PSNR target / fixed encode of its own chosen settings: "
-                      f"{target['wall_s'] / own['wall_s']:.2f} (wall), {target['cpu_s'] / own['cpu_s']:.2f} (cpu)")
+            psnr_target_ratios(size, ply, args, cli, record)
         median: dict[str, dict] = {}  # per decode step, the run of median wall time
         for step, command in (("decode_arrays", [sys.executable, "-c", DECODE_ARRAYS, str(gsc)]),
                               ("decode", [*cli, "decode", str(gsc), str(dec), "--force"])):
