@@ -603,6 +603,54 @@ def test_a_size_target_probes_again_when_its_plan_moves_the_sh_off_the_qps_coded
     assert probed_again  # the case happens on this scene
 
 
+def test_the_probe_encodes_share_a_cache_and_measure_what_fresh_encodes_measure(small_scene, monkeypatch):
+    """Issue 25: the probe's encodes share a chunk cache, so the DC-only bars' probes (at probe QPs) and a
+    size target's plan probes code only the chunks whose settings are new. The models, the pruning factors
+    and the file are those of a controller whose probe encodes are all fresh, with fewer HEVC encodes."""
+    from gscodec_shac.codec import rate_control
+    from gscodec_shac.codec.grid.hevc import HevcCodec
+
+    monkeypatch.setattr(rate_control, "PROBE_MIN", 500)  # a probe smaller than the cloud: plan probes run
+    encodes = [0]
+    encode_parts = HevcCodec.encode_parts
+
+    def counted(self, *args, **kwargs):
+        encodes[0] += 1
+        return encode_parts(self, *args, **kwargs)
+
+    monkeypatch.setattr(HevcCodec, "encode_parts", counted)
+    probe_encoder = RateController._probe_encoder
+    n = small_scene.cloud.num_gaussians
+
+    def run(sharing: bool) -> tuple[dict, int]:
+        encodes[0] = 0
+
+        def encoder(self, point, *, cached: bool = True):
+            return probe_encoder(self, point, cached=sharing and cached)
+
+        monkeypatch.setattr(RateController, "_probe_encoder", encoder)
+        controller = RateController(small_scene.cloud, views=small_scene.cameras, importance_shares=(0.6,),
+                                    workers=2).fit()
+        factors: list[dict] = []
+        at = controller._probe_at
+        monkeypatch.setattr(controller, "_probe_at", lambda plan: at(plan) and not factors.append(
+            dict(controller._prune_factors)) or True)
+        outcome = controller.encode(make_target(n, bpg=30))  # a plan that prunes: the kept rows are probed too
+        measured = {"rates": controller._probe_rates, "sh": controller._sh_points, "prune": controller.prune_,
+                    "dc_only": controller.dc_only_, "models": {k: (m.bytes.tolist(), m.mse.tolist())
+                                                              for k, m in controller.models_.items()},
+                    "factors": factors, "file": outcome.stream.to_bytes(), "trials": len(outcome.trials)}
+        return measured, encodes[0]
+
+    cached, with_cache = run(True)
+    fresh, without = run(False)
+    assert cached.keys() == fresh.keys()
+    for key in cached:
+        assert cached[key] == fresh[key], key
+    assert cached["factors"][-1]  # the pruned probe ran (its rows are another cloud: not cached)
+    assert with_cache < without
+
+
 def test_the_sh_counts_as_measured_feature_by_feature(controller, small_cloud):
     """Version 17: a base QP is measured when every feature it keeps is at a QP the probe coded: a whole
     base probed is, the next one is not, and once it is coded too the quarter steps between them are."""
