@@ -19,7 +19,8 @@ plus ``startup``: ``gscodec-shac decode`` of a 300-Gaussian fixture stream (star
 the bar "any ``shac_ladder`` point"), and ``--target-psnr P`` a PSNR target (``target_psnr``,
 with the fixed encode of its chosen settings, ``chosen_fixed_psnr``, and their ratio; ``--repeat R``
 runs that pair R times, each target run followed by its fixed encode, and prints the ratio of the
-medians too).
+medians too). Without ``--baseline``, ``--repeat R`` runs the ``--target-bpg`` pair (``target_bpg``,
+``chosen_fixed``) R times in the same way.
 ``--baseline ../main`` runs the encode, every decode step and the target encode under that
 checkout too, right before ours (the baseline's stream is overwritten by ours, except the target
 stream, ``_target_baseline.gsc``; the two fixed encodes' sha256 are compared and printed), and
@@ -141,25 +142,29 @@ def measured(command: list[str], nice: int, root: Path = ROOT, *, keep_output: b
     return row | {"stdout": output.decode()} if keep_output else row
 
 
-def psnr_target_ratios(size: str, ply: Path, args: argparse.Namespace, cli: list[str], record: Any) -> None:
-    """``--target-psnr``: the target encode, then a fixed encode of the settings it chose, ``--repeat``
-    times in turn (rows ``target_psnr`` and ``chosen_fixed_psnr``); prints each pair's ratio and the
-    ratio of the medians."""
-    aimed = ply.with_name(f"s{size}_target_psnr.gsc")
+def target_ratios(size: str, ply: Path, args: argparse.Namespace, cli: list[str], record: Any, kind: str) -> None:
+    """A target encode (``kind`` ``"bpg"``: ``--target-bpg``, ``"psnr"``: ``--target-psnr``), then a fixed
+    encode of the settings it chose, ``--repeat`` times in turn (rows ``target_bpg`` / ``chosen_fixed``,
+    ``target_psnr`` / ``chosen_fixed_psnr``); prints each pair's ratio and the ratio of the medians."""
+    value = args.target_bpg if kind == "bpg" else args.target_psnr
+    tag = "" if kind == "bpg" else "_psnr"
+    aimed = ply.with_name(f"s{size}_target{tag}.gsc")
     pairs = []
     for _ in range(max(1, args.repeat)):
-        target = record(size, "target_psnr", measured(
-            [*cli, "encode", str(ply), str(aimed), "--target-psnr", str(args.target_psnr), "--force"], args.nice))
-        chosen = chosen_rate_point(aimed, ply.with_name("chosen_psnr.yaml"))
+        target = record(size, f"target_{kind}", measured(
+            [*cli, "encode", str(ply), str(aimed), f"--target-{kind}", str(value), "--force"], args.nice))
+        chosen = chosen_rate_point(aimed, ply.with_name(f"chosen{tag}.yaml"))
         if chosen is None:
+            print(f"{size:>5} chosen settings of the {kind} target: not a rate point (skipped)")
             return
-        pairs.append((target, record(size, "chosen_fixed_psnr", measured(
+        pairs.append((target, record(size, f"chosen_fixed{tag}", measured(
             [*cli, "encode", str(ply), str(aimed.with_name(aimed.stem + "_chosen_fixed.gsc")), "-r", f"{chosen}:chosen",
              "--force"], args.nice))))
+    what = "size" if kind == "bpg" else "PSNR"
     for key, unit in (("wall_s", "wall"), ("cpu_s", "cpu")):
         each = ", ".join(f"{target[key] / own[key]:.2f}" for target, own in pairs)
         targets, owns = (statistics.median(row[key] for row in rows) for rows in zip(*pairs))
-        print(f"{size:>5} ratio PSNR target / fixed encode of its own chosen settings ({unit}): {each}; "
+        print(f"{size:>5} ratio {what} target / fixed encode of its own chosen settings ({unit}): {each}; "
               f"of the medians {targets / owns:.2f}", flush=True)
 
 
@@ -283,7 +288,7 @@ def main(argv: list[str] | None = None) -> int:
                                                          "--sh", "pca", "--er", "0.97", "--force"], args.nice))
                 rows[-1]["bytes"] = out.stat().st_size
         if args.target_psnr is not None:
-            psnr_target_ratios(size, ply, args, cli, record)
+            target_ratios(size, ply, args, cli, record, "psnr")
         median: dict[str, dict] = {}  # per decode step, the run of median wall time
         for step, command in (("decode_arrays", [sys.executable, "-c", DECODE_ARRAYS, str(gsc)]),
                               ("decode", [*cli, "decode", str(gsc), str(dec), "--force"])):
@@ -302,7 +307,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{size:>5} decode_arrays{suffix}: the decode call {calls[len(calls) // 2]:.2f} s "
                   f"(median of {len(calls)})", flush=True)
         decode = median["decode"]  # for the ratio to splat-transform's read
-        if not args.no_target:
+        if not args.no_target and args.repeat > 1 and args.baseline is None:
+            target_ratios(size, ply, args, cli, record, "bpg")
+        elif not args.no_target:
             checkouts = ([("@baseline", args.baseline.resolve())] if args.baseline is not None else []) + [("", ROOT)]
             aimed = {suffix: args.out / size / f"s{size}_target{suffix.replace('@', '_')}.gsc"
                      for suffix, _ in checkouts}

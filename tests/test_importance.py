@@ -58,6 +58,17 @@ def test_contributions_are_the_column_sums_of_the_blending_weights(small_scene):
     np.testing.assert_allclose(totals, sums, rtol=1e-9, atol=1e-9)
 
 
+def test_importance_shows_a_bar_over_its_views_when_asked_and_measures_the_same(small_scene, capsys):
+    """A scene's cameras make the importance renders long (up to 512 views), so a progress bar counts them."""
+    views = small_scene.cameras[:3]
+    quiet = gaussian_importance(small_scene.cloud, views)
+    assert "importance" not in capsys.readouterr().err
+    shown = gaussian_importance(small_scene.cloud, views, progress=True)
+    bar = capsys.readouterr().err
+    assert "importance" in bar and "/3 " in bar  # the views counted
+    np.testing.assert_array_equal(shown, quiet)
+
+
 def test_views_are_the_cameras_capped_and_narrowed_else_orbit_views(small_scene):
     wide = [c.resized(400, 300) for c in small_scene.cameras]
     views = importance_views(small_scene.cloud, wide, width=100)

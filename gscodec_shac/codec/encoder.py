@@ -374,7 +374,8 @@ class Encoder:
         importance = self.importance
         if importance is None:  # measured once per cloud (grid_order and encode both ask)
             if self._measured is None or self._measured[0] is not cloud:
-                self._measured = (cloud, gaussian_importance(cloud, importance_views(cloud, self.views)))
+                self._measured = (cloud, gaussian_importance(cloud, importance_views(cloud, self.views),
+                                                             progress=self.progress))
             importance = self._measured[1]
         elif np.shape(importance) != (cloud.num_gaussians,):
             raise ValidationError(f"importance has shape {np.shape(importance)}, expected one value per Gaussian "

@@ -27,6 +27,7 @@ import numpy as np
 from gscodec_shac.camera import Camera, orbit_views, spread_views
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.gaussians import GaussianCloud
+from gscodec_shac.progress import optional_bar
 
 if TYPE_CHECKING:
     from gscodec_shac.render import Renderer
@@ -49,9 +50,10 @@ def importance_views(cloud: GaussianCloud, cameras: Sequence[Camera] | None = No
 
 
 def gaussian_importance(cloud: GaussianCloud, views: Sequence[Camera], *,
-                        renderer: "Renderer | None" = None) -> np.ndarray:
+                        renderer: "Renderer | None" = None, progress: bool = False) -> np.ndarray:
     """(N,) float64 mean over ``views`` of each Gaussian's summed blending weight per pixel (``renderer``:
-    one of ``cloud`` to use, else a new one)."""
+    one of ``cloud`` to use, else a new one; ``progress``: a bar over the views, which a scene's cameras
+    make long: about 0.2-0.3 s per view at 1M Gaussians on 2 cores, so 300 cameras take a minute or more)."""
     from gscodec_shac.render import Renderer
 
     if not views:
@@ -60,7 +62,7 @@ def gaussian_importance(cloud: GaussianCloud, views: Sequence[Camera], *,
         raise ValidationError("importance: the renderer given renders another cloud")
     renderer = renderer or Renderer(cloud)
     total = np.zeros(cloud.num_gaussians)
-    for view in views:
+    for view in optional_bar(views, progress, desc="importance", unit="view", leave=False):
         total += renderer.contributions(view) / (view.width * view.height)
     return total / len(views)
 

@@ -459,7 +459,8 @@ class RateController:
             if 0.2 <= np.count_nonzero(keep) / n < 1.0:
                 out.append((_prune(min_opacity=threshold), keep))
         if self.importance_shares:
-            self.importance_ = gaussian_importance(self.cloud, self.importance_views, renderer=renderer)
+            self.importance_ = gaussian_importance(self.cloud, self.importance_views, renderer=renderer,
+                                                   progress=self.progress)
         counts = [keep_count(n, share) for share in self.importance_shares]
         for share, rows in zip(self.importance_shares, most_important_counts(self.importance_, counts)):
             if rows.size < n:
