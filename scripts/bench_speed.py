@@ -20,7 +20,9 @@ the bar "any ``shac_ladder`` point"), and ``--target-psnr P`` a PSNR target (``t
 with the fixed encode of its chosen settings, ``chosen_fixed_psnr``, and their ratio; ``--repeat R``
 runs that pair R times, each target run followed by its fixed encode, and prints the ratio of the
 medians too). Without ``--baseline``, ``--repeat R`` runs the ``--target-bpg`` pair (``target_bpg``,
-``chosen_fixed``) R times in the same way.
+``chosen_fixed``) R times in the same way. ``--target-cameras N`` runs that pair on the same scene
+with N orbit cameras ``--camera-width`` wide given to both encodes (``target_bpg_cameras``,
+``chosen_fixed_cameras``): what a capture's cameras cost a target (importance on every camera).
 ``--baseline ../main`` runs the encode, every decode step and the target encode under that
 checkout too, right before ours (the baseline's stream is overwritten by ours, except the target
 stream, ``_target_baseline.gsc``; the two fixed encodes' sha256 are compared and printed), and
@@ -142,30 +144,53 @@ def measured(command: list[str], nice: int, root: Path = ROOT, *, keep_output: b
     return row | {"stdout": output.decode()} if keep_output else row
 
 
-def target_ratios(size: str, ply: Path, args: argparse.Namespace, cli: list[str], record: Any, kind: str) -> None:
+def target_ratios(size: str, ply: Path, args: argparse.Namespace, cli: list[str], record: Any, kind: str,
+                  cameras: Path | None = None) -> None:
     """A target encode (``kind`` ``"bpg"``: ``--target-bpg``, ``"psnr"``: ``--target-psnr``), then a fixed
     encode of the settings it chose, ``--repeat`` times in turn (rows ``target_bpg`` / ``chosen_fixed``,
-    ``target_psnr`` / ``chosen_fixed_psnr``); prints each pair's ratio and the ratio of the medians."""
+    ``target_psnr`` / ``chosen_fixed_psnr``; with ``cameras``, both encodes are given them and the rows
+    end in ``_cameras``: the SH stage is then fitted in their view metric, which the chosen rate point
+    does not record); prints whether each fixed encode coded the target file's chunks (not the SH's
+    when the target pruned: the controller fits the SH stage on the whole cloud, a fixed encode on the
+    Gaussians it keeps), each pair's ratio and the ratio of the medians."""
     value = args.target_bpg if kind == "bpg" else args.target_psnr
-    tag = "" if kind == "bpg" else "_psnr"
+    with_cameras = "_cameras" if cameras is not None else ""
+    tag = ("" if kind == "bpg" else "_psnr") + with_cameras
+    seen_by = ["--cameras", str(cameras)] if cameras is not None else []
     aimed = ply.with_name(f"s{size}_target{tag}.gsc")
     pairs = []
     for _ in range(max(1, args.repeat)):
-        target = record(size, f"target_{kind}", measured(
-            [*cli, "encode", str(ply), str(aimed), f"--target-{kind}", str(value), "--force"], args.nice))
+        target = record(size, f"target_{kind}{with_cameras}", measured(
+            [*cli, "encode", str(ply), str(aimed), f"--target-{kind}", str(value), *seen_by, "--force"], args.nice))
         chosen = chosen_rate_point(aimed, ply.with_name(f"chosen{tag}.yaml"))
         if chosen is None:
             print(f"{size:>5} chosen settings of the {kind} target: not a rate point (skipped)")
             return
+        fixed = aimed.with_name(aimed.stem + "_chosen_fixed.gsc")
         pairs.append((target, record(size, f"chosen_fixed{tag}", measured(
-            [*cli, "encode", str(ply), str(aimed.with_name(aimed.stem + "_chosen_fixed.gsc")), "-r", f"{chosen}:chosen",
-             "--force"], args.nice))))
-    what = "size" if kind == "bpg" else "PSNR"
+            [*cli, "encode", str(ply), str(fixed), "-r", f"{chosen}:chosen", *seen_by, "--force"], args.nice))))
+        differ = differing_chunks(aimed, fixed)  # the SH's when the target pruned (the stage's fit differs)
+        pairs[-1][1]["same_bytes"] = not differ
+        print(f"{size:>5} chosen_fixed{tag}: " + (f"{len(differ)} chunks unlike the target file's ({differ[0]}, ...)"
+                                                   if differ else "the same chunks as the target file"), flush=True)
+    what = ("size" if kind == "bpg" else "PSNR") + (f" target with {cameras.parent.name}" if cameras else " target")
     for key, unit in (("wall_s", "wall"), ("cpu_s", "cpu")):
         each = ", ".join(f"{target[key] / own[key]:.2f}" for target, own in pairs)
         targets, owns = (statistics.median(row[key] for row in rows) for rows in zip(*pairs))
-        print(f"{size:>5} ratio {what} target / fixed encode of its own chosen settings ({unit}): {each}; "
+        print(f"{size:>5} ratio {what} / fixed encode of its own chosen settings ({unit}): {each}; "
               f"of the medians {targets / owns:.2f}", flush=True)
+
+
+def camera_scene(size: str, n: int, args: argparse.Namespace, cli: list[str]) -> Path:
+    """The synthetic scene of ``n`` Gaussians again (the same PLY: the same seed) with ``--target-cameras``
+    orbit cameras ``--camera-width`` wide, in ``OUT/SIZE/camsN/``; its ``cameras.json``."""
+    folder = args.out / size / f"cams{args.target_cameras}"
+    if not (folder / "cameras.json").exists():
+        folder.mkdir(parents=True, exist_ok=True)
+        width = args.camera_width
+        measured([*cli, "synthetic", str(folder / f"s{size}.ply"), "-n", str(n), "--views", str(args.target_cameras),
+                  "--width", str(width), "--height", str(width * 3 // 4), "-q", "--force"], args.nice)
+    return folder / "cameras.json"
 
 
 def write_results(stem: Path, document: Any, rows: list[dict], fields: list[str]) -> None:
@@ -225,6 +250,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="also encode every point of --rate-point's file (e.g. shac_ladder:rp1..rp9)")
     parser.add_argument("--target-psnr", type=float, metavar="DB",
                         help="also encode to this PSNR target (dB against the uncompressed model's orbit renders)")
+    parser.add_argument("--target-cameras", type=int, default=0, metavar="N",
+                        help="also run the --target-bpg pair with N orbit cameras (a capture's case: importance "
+                             "ranked on every camera, SHAC-PCA in their view metric)")
+    parser.add_argument("--camera-width", type=int, default=1024, help="the width of those cameras (3:4)")
     parser.add_argument("--no-peer", action="store_true", help="skip splat-transform")
     parser.add_argument("--nice", type=int, default=5, help="niceness of the measured processes")
     parser.add_argument("--baseline", type=Path,
@@ -289,6 +318,9 @@ def main(argv: list[str] | None = None) -> int:
                 rows[-1]["bytes"] = out.stat().st_size
         if args.target_psnr is not None:
             target_ratios(size, ply, args, cli, record, "psnr")
+        if args.target_cameras:
+            cameras = camera_scene(size, n, args, cli)
+            target_ratios(size, cameras.with_name(ply.name), args, cli, record, "bpg", cameras)
         median: dict[str, dict] = {}  # per decode step, the run of median wall time
         for step, command in (("decode_arrays", [sys.executable, "-c", DECODE_ARRAYS, str(gsc)]),
                               ("decode", [*cli, "decode", str(gsc), str(dec), "--force"])):
