@@ -1255,8 +1255,9 @@ class RateController:
 
         The DC-only bars' probes are coded at probe QPs, so only their SH chunks are new; a size target's
         plan probes take the placement, the SH features, the 16-bit positions and any chunk whose QP an
-        earlier probe coded. Synthetic 250k at 100 bits/G, the same file: the DC-only probes 3.9 -> 2.6 s
-        and the plan probes 2.6 -> 1.9 s in the run (docs/benchmarks.md, "The probe's chunk cache")."""
+        earlier probe coded. Synthetic 250k at 100 bits/G, the same file: the plan probes 2.38 -> 1.62 s and
+        the calibration, beside which the DC-only probes run, 5.86 -> 5.20 s (medians of three runs;
+        docs/benchmarks.md, "The probe's chunk cache")."""
         return Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers,
                        chunk_cache=self._probe_cache if cached else None)
 
