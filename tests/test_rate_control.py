@@ -669,6 +669,15 @@ def test_the_sh_counts_as_measured_feature_by_feature(controller, small_cloud):
         controller._sh_points = saved
 
 
+def test_the_fit_times_its_importance_renders_inside_the_calibration(controller, small_scene):
+    """``rate_control.seconds.importance``: the importance renders, part of ``calibrate`` (with a capture's
+    cameras most of the fit); absent when the controller has no importance choices."""
+    assert 0 < controller.seconds_["importance"] <= controller.seconds_["calibrate"]
+    plain = RateController(small_scene.cloud, views=small_scene.cameras[:2], importance_shares=(), workers=2)
+    plain._prune_candidates()
+    assert "importance" not in plain.seconds_
+
+
 def test_no_probe_at_the_plan_when_the_probe_is_the_whole_cloud(controller):
     target = make_target(controller.cloud.num_gaussians, bpg=120)
     assert controller._probe_rows.size == controller.cloud.num_gaussians

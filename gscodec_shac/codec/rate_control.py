@@ -459,8 +459,11 @@ class RateController:
             if 0.2 <= np.count_nonzero(keep) / n < 1.0:
                 out.append((_prune(min_opacity=threshold), keep))
         if self.importance_shares:
+            tic = time.perf_counter()
             self.importance_ = gaussian_importance(self.cloud, self.importance_views, renderer=renderer,
                                                    progress=self.progress)
+            # part of ``calibrate``: a scene's cameras (up to 512) can make it most of the fit
+            self.seconds_["importance"] = time.perf_counter() - tic
         counts = [keep_count(n, share) for share in self.importance_shares]
         for share, rows in zip(self.importance_shares, most_important_counts(self.importance_, counts)):
             if rows.size < n:
