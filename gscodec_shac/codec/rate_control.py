@@ -361,7 +361,7 @@ class RateController:
         #: the fitted stage's features of every row (``stage_.transform``), given to the trial encodes
         self._stage_features: np.ndarray | None = None
         self._probe_rows: np.ndarray | None = None  # the probe's rows of the cloud
-        #: the chunk cache of the probe's encodes (:meth:`_probe_encode`): its placement, features and the
+        #: the chunk cache of the probe's encodes (:meth:`_probe_encoder`): its placement, features and the
         #: chunks of settings coded before are not coded again (the same bytes)
         self._probe_cache: dict = {}
         self._probe_rates: dict[str, dict[int, float]] = {}  # QP attribute -> {probe QP: bytes, whole cloud}
@@ -577,7 +577,7 @@ class RateController:
                 continue
             for qp in RATIO_QPS:
                 point = self._rate_point({a: qp for a in rates} | {"positions": 16}).with_overrides(dc_only_energy=value)
-                sizes = self._probe_encode(probe, point).attribute_sizes()
+                sizes = self._probe_encoder(point).encode(probe).attribute_sizes()
                 out[(value, qp)] = _scaled_probe_bytes(sizes, "sh", scale)
         return flags, out
 
@@ -1247,7 +1247,7 @@ class RateController:
         """The attribute sizes of the cloud's ``rows`` coded at ``point``; with ``record_sh`` each
         water-filled SH feature's bytes (scaled to the whole cloud) join its rate points. ``cached``
         only when ``rows`` are the probe's (:meth:`_probe_encoder`)."""
-        stream = self._probe_encode(self.cloud.select(rows), point, cached=cached)
+        stream = self._probe_encoder(point, cached=cached).encode(self.cloud.select(rows))
         if record_sh:
             self._record_sh_chunks(stream, self.cloud.num_gaussians / rows.size)
         return stream.attribute_sizes()
@@ -1263,10 +1263,6 @@ class RateController:
         docs/benchmarks.md, "The probe's chunk cache")."""
         return Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers,
                        chunk_cache=self._probe_cache if cached else None)
-
-    def _probe_encode(self, probe: GaussianCloud, point: RatePoint, *, cached: bool = True) -> Bitstream:
-        """:meth:`_probe_encoder`'s encode of ``probe``."""
-        return self._probe_encoder(point, cached=cached).encode(probe)
 
     def _rescale_models(self, plan: Plan, decoded: GaussianCloud) -> int:
         """Rescale each QP attribute's rendered-error model by what the first encode of a PSNR target
