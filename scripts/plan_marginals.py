@@ -1,0 +1,184 @@
+"""Is a size target's plan the best allocation on held-out views? One step of each attribute around it.
+
+Fits the rate controller (SHAC-auto) on a scene and its cameras, codes a size target, then codes the
+target's plan again with one attribute one step finer and one step coarser: a QP by one step of the
+controller's choices (the SH features' base QP by two, half a QP), the positions by one bit; the
+pruning and the DC-only bar stay the plan's. Each move's bytes and the rendered MSE it adds or removes
+are measured on the controller's views and on held-out views (``--judge-cameras``), against the
+uncompressed model, beside what the controller's models predicted for it (the models as the
+target's encodes left them). ``--presets`` also codes the plan, at its QPs, with other x265 presets.
+
+At the best allocation no finer step gains more MSE per byte than the cheapest coarser step loses.
+The best pair of one finer and one coarser step of two attributes, spending the bytes one saves on the
+other, shows what reallocating single steps would buy, in dB at equal size (:func:`best_swap`;
+docs/rate_control.md, "Is the plan the best allocation on held-out views?").
+
+    python scripts/plan_marginals.py ../outputs/train/chair_train_l3_d45/point_cloud.ply \\
+        --cameras ../outputs/train/chair_train_l3_d45/cameras.json \\
+        --judge-cameras ../outputs/train/chair_train_l3_d45/cameras_test.json --judge-every 4 \\
+        --background 1,1,1 --bpg 100 --out plan_marginals_chair100
+    python scripts/plan_marginals.py ../shared/data/scenes/bonsai_cpu_sh3/point_cloud.ply \\
+        --cameras ../shared/data/scenes/bonsai_cpu_sh3/cameras.json --test-every 8 --bpg 100 \\
+        --out plan_marginals_bonsai100
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "scripts"))
+
+from bench_speed import write_results  # noqa: E402
+
+FIELDS = ["move", "attribute", "direction", "setting", "bytes", "d_bytes", "model_d_mse", "views_d_mse",
+          "judges_d_mse", "views_psnr", "judges_psnr"]
+
+
+def moves(controller: Any, settings: dict[str, Any]) -> list[tuple[str, str, str, dict[str, Any]]]:
+    """(label, attribute, "finer" or "coarser", settings) of one step of each attribute around ``settings``."""
+    from gscodec_shac.codec.rate_control import _setting
+
+    out = []
+    for name, model in controller.models_.items():
+        choices = list(model.choices)
+        index = int(np.searchsorted(model.choices, settings[name]))
+        step = 2 if name == "sh" else 1
+        # positions: more bits is finer; a QP: a lower one is finer
+        finer_delta = step if name == "positions" else -step
+        for direction, delta in (("finer", finer_delta), ("coarser", -finer_delta)):
+            j = index + delta
+            if 0 <= j < len(choices):
+                out.append((f"{name} {direction}", name, direction, {**settings, name: _setting(choices[j])}))
+    return out
+
+
+def best_swap(rows: Sequence[dict[str, Any]], key: str, base_mse: float) -> dict[str, Any] | None:
+    """The pair (finer step of one attribute, coarser step of another) whose exchange lowers ``key``'s MSE
+    most at equal bytes, or None when no pair gains.
+
+    A finer step gains ``g = -d_mse / d_bytes`` per byte spent, a coarser one loses ``l = d_mse / -d_bytes``
+    per byte saved; spending ``B = min(d_bytes_finer, -d_bytes_coarser)`` bytes (each step taken in
+    proportion) removes ``(g - l) B`` of MSE, added to ``base_mse`` as the PSNR gained at equal size."""
+    best = None
+    finer = [r for r in rows if r["direction"] == "finer" and r["d_bytes"] > 0]
+    coarser = [r for r in rows if r["direction"] == "coarser" and r["d_bytes"] < 0]
+    for f in finer:
+        gain = -f[key] / f["d_bytes"]
+        for c in coarser:
+            if c["attribute"] == f["attribute"]:
+                continue
+            loss = c[key] / -c["d_bytes"]
+            spent = min(f["d_bytes"], -c["d_bytes"])
+            removed = (gain - loss) * spent
+            if removed > 0 and (best is None or removed > best["mse_removed"]):
+                best = {"finer": f["move"], "coarser": c["move"], "gain_per_byte": gain, "loss_per_byte": loss,
+                        "bytes_moved": spent, "mse_removed": removed,
+                        "db_at_equal_size": 10 * math.log10(base_mse / max(base_mse - removed, 1e-30))}
+    return best
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("model", help="a static model file (PLY, or any format the codec reads)")
+    parser.add_argument("--cameras", required=True, help="the controller's cameras (its views and importance)")
+    held_out = parser.add_mutually_exclusive_group(required=True)
+    held_out.add_argument("--judge-cameras", help="held-out cameras the moves are judged on")
+    held_out.add_argument("--test-every", type=int, help="hold out every k-th of --cameras in name order (as "
+                          "`gscodec-shac rd`): the controller gets the others, the moves are judged on them")
+    parser.add_argument("--judge-every", type=int, default=1, help="every k-th held-out camera (default: all)")
+    parser.add_argument("--background", default="0,0,0", help="r,g,b in [0, 1] (1,1,1 for NeRF-synthetic)")
+    goal = parser.add_mutually_exclusive_group(required=True)
+    goal.add_argument("--bpg", type=float, help="a size target in bits per Gaussian")
+    goal.add_argument("--size", help="a size target (e.g. 600kB)")
+    parser.add_argument("--presets", default="", help="x265 presets to code the plan with too, at its QPs "
+                        "(e.g. veryslow,placebo): bytes and held-out PSNR against the controller's preset")
+    parser.add_argument("--out", required=True, type=Path, help="results stem: OUT.json and OUT.csv")
+    args = parser.parse_args(argv)
+    if args.judge_every < 1 or (args.test_every is not None and args.test_every < 2):
+        parser.error("--judge-every must be at least 1 and --test-every at least 2")
+
+    from gscodec_shac.camera import test_split
+    from gscodec_shac.codec import rate_control as rc
+    from gscodec_shac.codec.encoder import Encoder
+    from gscodec_shac.io.cameras import load_cameras
+    from gscodec_shac.io.models import read_model
+    from gscodec_shac.render import Renderer
+
+    cloud, _ = read_model(args.model)
+    background = tuple(float(v) for v in args.background.split(","))
+    cameras = load_cameras(args.cameras)
+    if args.judge_cameras:
+        judges = load_cameras(args.judge_cameras)
+    else:
+        cameras, judges = test_split(cameras, args.test_every)
+    judges = judges[:: args.judge_every]
+    controller = rc.RateController(cloud, views=cameras, background=background, progress=True)
+    controller.fit()
+    target = rc.make_target(cloud.num_gaussians, bpg=args.bpg) if args.bpg is not None else \
+        rc.make_target(cloud.num_gaussians, size=args.size)
+    # _encode_to, not encode: the variants are predicted with the models as the target's encodes corrected them
+    outcome = controller._encode_to(target)
+    base = dict(outcome.plan.settings)
+    variants = moves(controller, base)
+    predicted = {label: controller._predict(settings).predicted_mse for label, _, _, settings in variants}
+    base_predicted = controller._predict(base).predicted_mse
+
+    original = Renderer(cloud)
+    references = [original.render(view, background=background).image for view in judges]
+
+    def judged_mse(decoded: Any) -> float:
+        renderer = Renderer(decoded)
+        return float(np.mean([np.mean((renderer.render(view, background=background).image - reference) ** 2)
+                              for view, reference in zip(judges, references)]))
+
+    def coded(settings: dict[str, Any]) -> tuple[int, float, float]:
+        stream = controller._encode(controller._predict(settings), target)
+        decoded = rc._decoded(stream, controller.workers)
+        return stream.total_bytes(), controller._rendered_mse(decoded), judged_mse(decoded)
+
+    base_bytes, base_views, base_judges = coded(base)
+    rows = []
+    for label, name, direction, settings in variants:
+        size, views_mse, judges_mse = coded(settings)
+        rows.append({"move": label, "attribute": name, "direction": direction, "setting": settings[name],
+                     "bytes": size, "d_bytes": size - base_bytes, "model_d_mse": predicted[label] - base_predicted,
+                     "views_d_mse": views_mse - base_views, "judges_d_mse": judges_mse - base_judges,
+                     "views_psnr": rc._psnr(views_mse), "judges_psnr": rc._psnr(judges_mse)})
+        print(f"{label:18s} {size - base_bytes:+8d} bytes  MSE x1e9: model {1e9 * rows[-1]['model_d_mse']:+8.1f}  "
+              f"views {1e9 * rows[-1]['views_d_mse']:+8.1f}  judges {1e9 * rows[-1]['judges_d_mse']:+8.1f}", flush=True)
+    presets = []
+    for preset in filter(None, args.presets.split(",")):
+        point = controller._predict(base).rate_point.with_overrides(codec_options={"preset": preset})
+        stream = Encoder(point, sh_stage=controller.stage_, fit_stage=False, workers=controller.workers,
+                         importance=controller.importance_, stage_features=controller._stage_features).encode(cloud)
+        judges_mse = judged_mse(rc._decoded(stream, controller.workers))
+        presets.append({"preset": preset, "bytes": stream.total_bytes(), "judges_psnr": rc._psnr(judges_mse),
+                        "d_judges_psnr": rc._psnr(judges_mse) - rc._psnr(base_judges)})
+        print(f"preset {preset}: {stream.total_bytes() / base_bytes - 1:+.2%} bytes, "
+              f"{presets[-1]['d_judges_psnr']:+.3f} dB on the held-out views", flush=True)
+    swaps = {key: best_swap(rows, f"{key}_d_mse", mse) for key, mse in
+             (("views", base_views), ("judges", base_judges))}
+    document = {"model": str(args.model), "target": {"kind": target.kind, "value": target.value},
+                "plan": base, "target_bytes": outcome.stream.total_bytes(), "bytes": base_bytes,
+                "views_psnr": rc._psnr(base_views), "judges_psnr": rc._psnr(base_judges), "judges": len(judges),
+                "rows": rows, "best_swap": swaps, "presets": presets}
+    print(f"plan {base}: {base_bytes:,} bytes, {document['views_psnr']:.2f} dB on the controller's views, "
+          f"{document['judges_psnr']:.2f} dB on {len(judges)} held-out views")
+    for key, swap in swaps.items():
+        print(f"best single-step exchange on the {key}: " + (
+            "none gains" if swap is None else
+            f"{swap['finer']} paid by {swap['coarser']}: +{swap['db_at_equal_size']:.3f} dB at equal size"))
+    write_results(args.out, document, rows, FIELDS)
+    return document
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,66 @@
+"""scripts/plan_marginals.py: one step of each attribute around a size target's plan, judged on held-out views."""
+
+import json
+
+import pytest
+
+from tests.conftest import load_script
+
+
+@pytest.fixture(scope="module")
+def script():
+    return load_script("plan_marginals")
+
+
+def _row(move, attribute, direction, d_bytes, d_mse):
+    return {"move": move, "attribute": attribute, "direction": direction, "d_bytes": d_bytes, "judges_d_mse": d_mse}
+
+
+def test_the_best_swap_spends_what_the_cheaper_loss_saves_on_the_larger_gain(script):
+    import math
+
+    rows = [_row("rotation finer", "rotation", "finer", 100, -500.0),    # gains 5 per byte
+            _row("rotation coarser", "rotation", "coarser", -100, 100.0),  # loses 1 per byte
+            _row("scale finer", "scale", "finer", 300, -300.0),          # gains 1 per byte
+            _row("scale coarser", "scale", "coarser", -50, 100.0)]       # loses 2 per byte
+    swap = script.best_swap(rows, "judges_d_mse", 1e4)
+    # rotation finer paid by scale coarser: (5 - 2) per byte over min(100, 50) bytes; one attribute's own pair
+    # (rotation finer and coarser: 4 per byte over 100 bytes) is no exchange, and scale finer / rotation
+    # coarser gains nothing
+    assert (swap["finer"], swap["coarser"]) == ("rotation finer", "scale coarser")
+    assert swap["bytes_moved"] == 50 and swap["mse_removed"] == pytest.approx(150.0)
+    assert swap["db_at_equal_size"] == pytest.approx(10 * math.log10(1e4 / (1e4 - 150.0)))
+
+
+def test_no_swap_when_every_gain_is_below_every_loss(script):
+    rows = [_row("rotation finer", "rotation", "finer", 100, -100.0),
+            _row("scale coarser", "scale", "coarser", -100, 300.0),
+            _row("sh finer", "sh", "finer", 0, -5.0)]                    # no bytes: no rate to compare
+    assert script.best_swap(rows, "judges_d_mse", 1e4) is None
+
+
+def test_the_plan_recoded_is_the_target_file_and_each_move_is_one_step(tmp_path, small_scene, script):
+    from gscodec_shac.io.inria_cameras import write_inria_cameras
+    from gscodec_shac.io.ply import write_ply
+
+    ply, cameras = tmp_path / "in.ply", tmp_path / "cameras.json"
+    write_ply(ply, small_scene.cloud)
+    write_inria_cameras(cameras, small_scene.cameras)
+    document = script.main([str(ply), "--cameras", str(cameras), "--test-every", "4", "--bpg", "120",
+                            "--presets", "fast", "--out", str(tmp_path / "pm")])
+    assert document["bytes"] == document["target_bytes"]  # the controller is deterministic: the same file
+    assert document["judges"] == 2  # 8 cameras, every 4th held out
+    plan, rows = document["plan"], document["rows"]
+    assert {row["attribute"] for row in rows} == set(plan) - {"prune", "dc_only"}
+    for row in rows:
+        assert row["bytes"] - row["d_bytes"] == document["bytes"]
+        assert row["setting"] != plan[row["attribute"]]
+        if row["attribute"] == "positions":
+            assert row["setting"] - plan["positions"] == (1 if row["direction"] == "finer" else -1)
+        else:  # a finer QP is a lower one
+            assert (row["setting"] < plan[row["attribute"]]) == (row["direction"] == "finer")
+    assert sum(row["d_bytes"] > 0 for row in rows if row["direction"] == "finer") >= len(rows) // 2 - 1
+    saved = json.loads((tmp_path / "pm.json").read_text())
+    assert saved["rows"] == rows and (tmp_path / "pm.csv").read_text().count("\n") == len(rows) + 1
+    (preset,) = document["presets"]
+    assert preset["preset"] == "fast" and preset["bytes"] != document["bytes"]  # another preset, other bytes
