@@ -6,7 +6,8 @@ controller's choices (the SH features' base QP by two, half a QP), the positions
 pruning and the DC-only bar stay the plan's. Each move's bytes and the rendered MSE it adds or removes
 are measured on the controller's views and on held-out views (``--judge-cameras``), against the
 uncompressed model, beside what the controller's models predicted for it (the models as the
-target's encodes left them). ``--presets`` also codes the plan, at its QPs, with other x265 presets.
+target's encodes left them). ``--codec-options`` also codes the plan, at its QPs, with other x265
+options (a preset, the loop filters).
 
 At the best allocation no finer step gains more MSE per byte than the cheapest coarser step loses.
 The best pair of one finer and one coarser step of two attributes, spending the bytes one saves on the
@@ -16,7 +17,7 @@ docs/rate_control.md, "Is the plan the best allocation on held-out views?").
     python scripts/plan_marginals.py ../outputs/train/chair_train_l3_d45/point_cloud.ply \\
         --cameras ../outputs/train/chair_train_l3_d45/cameras.json \\
         --judge-cameras ../outputs/train/chair_train_l3_d45/cameras_test.json --judge-every 4 \\
-        --background 1,1,1 --bpg 100 --out plan_marginals_chair100
+        --background 1,1,1 --bpg 100 --codec-options preset=placebo --out plan_marginals_chair100
     python scripts/plan_marginals.py ../shared/data/scenes/bonsai_cpu_sh3/point_cloud.ply \\
         --cameras ../shared/data/scenes/bonsai_cpu_sh3/cameras.json --test-every 8 --bpg 100 \\
         --out plan_marginals_bonsai100
@@ -85,6 +86,19 @@ def best_swap(rows: Sequence[dict[str, Any]], key: str, base_mse: float) -> dict
     return best
 
 
+def codec_options(text: str) -> dict[str, Any]:
+    """``"preset=placebo,loop_filters=false"`` -> ``{"preset": "placebo", "loop_filters": False}`` (YAML values)."""
+    import yaml
+
+    out = {}
+    for item in text.split(","):
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--codec-options: {item!r} is not KEY=VALUE")
+        out[key.strip()] = yaml.safe_load(value)
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("model", help="a static model file (PLY, or any format the codec reads)")
@@ -98,12 +112,18 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     goal = parser.add_mutually_exclusive_group(required=True)
     goal.add_argument("--bpg", type=float, help="a size target in bits per Gaussian")
     goal.add_argument("--size", help="a size target (e.g. 600kB)")
-    parser.add_argument("--presets", default="", help="x265 presets to code the plan with too, at its QPs "
-                        "(e.g. veryslow,placebo): bytes and held-out PSNR against the controller's preset")
+    parser.add_argument("--codec-options", action="append", default=[], metavar="KEY=VALUE[,KEY=VALUE]",
+                        help="code the plan again with these lossy-codec options, at its QPs (repeatable; e.g. "
+                        "preset=placebo or loop_filters=false): bytes and held-out PSNR against the plan's file")
+    parser.add_argument("--no-moves", action="store_true", help="only the plan and its --codec-options variants")
     parser.add_argument("--out", required=True, type=Path, help="results stem: OUT.json and OUT.csv")
     args = parser.parse_args(argv)
     if args.judge_every < 1 or (args.test_every is not None and args.test_every < 2):
         parser.error("--judge-every must be at least 1 and --test-every at least 2")
+    try:
+        option_sets = [codec_options(text) for text in args.codec_options]
+    except ValueError as exc:
+        parser.error(str(exc))
 
     from gscodec_shac.camera import test_split
     from gscodec_shac.codec import rate_control as rc
@@ -127,7 +147,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     # _encode_to, not encode: the variants are predicted with the models as the target's encodes corrected them
     outcome = controller._encode_to(target)
     base = dict(outcome.plan.settings)
-    variants = moves(controller, base)
+    variants = [] if args.no_moves else moves(controller, base)
     predicted = {label: controller._predict(settings).predicted_mse for label, _, _, settings in variants}
     base_predicted = controller._predict(base).predicted_mse
 
@@ -154,22 +174,22 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                      "views_psnr": rc._psnr(views_mse), "judges_psnr": rc._psnr(judges_mse)})
         print(f"{label:18s} {size - base_bytes:+8d} bytes  MSE x1e9: model {1e9 * rows[-1]['model_d_mse']:+8.1f}  "
               f"views {1e9 * rows[-1]['views_d_mse']:+8.1f}  judges {1e9 * rows[-1]['judges_d_mse']:+8.1f}", flush=True)
-    presets = []
-    for preset in filter(None, args.presets.split(",")):
-        point = controller._predict(base).rate_point.with_overrides(codec_options={"preset": preset})
+    recoded = []
+    for options in option_sets:
+        point = controller._predict(base).rate_point.with_overrides(codec_options=options)
         stream = Encoder(point, sh_stage=controller.stage_, fit_stage=False, workers=controller.workers,
                          importance=controller.importance_, stage_features=controller._stage_features).encode(cloud)
         judges_mse = judged_mse(rc._decoded(stream, controller.workers))
-        presets.append({"preset": preset, "bytes": stream.total_bytes(), "judges_psnr": rc._psnr(judges_mse),
+        recoded.append({"codec_options": options, "bytes": stream.total_bytes(), "judges_psnr": rc._psnr(judges_mse),
                         "d_judges_psnr": rc._psnr(judges_mse) - rc._psnr(base_judges)})
-        print(f"preset {preset}: {stream.total_bytes() / base_bytes - 1:+.2%} bytes, "
-              f"{presets[-1]['d_judges_psnr']:+.3f} dB on the held-out views", flush=True)
+        print(f"codec options {options}: {stream.total_bytes() / base_bytes - 1:+.2%} bytes, "
+              f"{recoded[-1]['d_judges_psnr']:+.3f} dB on the held-out views", flush=True)
     swaps = {key: best_swap(rows, f"{key}_d_mse", mse) for key, mse in
              (("views", base_views), ("judges", base_judges))}
     document = {"model": str(args.model), "target": {"kind": target.kind, "value": target.value},
                 "plan": base, "target_bytes": outcome.stream.total_bytes(), "bytes": base_bytes,
                 "views_psnr": rc._psnr(base_views), "judges_psnr": rc._psnr(base_judges), "judges": len(judges),
-                "rows": rows, "best_swap": swaps, "presets": presets}
+                "rows": rows, "best_swap": swaps, "codec_options": recoded}
     print(f"plan {base}: {base_bytes:,} bytes, {document['views_psnr']:.2f} dB on the controller's views, "
           f"{document['judges_psnr']:.2f} dB on {len(judges)} held-out views")
     for key, swap in swaps.items():

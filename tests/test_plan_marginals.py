@@ -47,7 +47,7 @@ def test_the_plan_recoded_is_the_target_file_and_each_move_is_one_step(tmp_path,
     write_ply(ply, small_scene.cloud)
     write_inria_cameras(cameras, small_scene.cameras)
     document = script.main([str(ply), "--cameras", str(cameras), "--test-every", "4", "--bpg", "120",
-                            "--presets", "fast", "--out", str(tmp_path / "pm")])
+                            "--codec-options", "preset=fast", "--codec-options", "loop_filters=false", "--out", str(tmp_path / "pm")])
     assert document["bytes"] == document["target_bytes"]  # the controller is deterministic: the same file
     assert document["judges"] == 2  # 8 cameras, every 4th held out
     plan, rows = document["plan"], document["rows"]
@@ -62,5 +62,12 @@ def test_the_plan_recoded_is_the_target_file_and_each_move_is_one_step(tmp_path,
     assert sum(row["d_bytes"] > 0 for row in rows if row["direction"] == "finer") >= len(rows) // 2 - 1
     saved = json.loads((tmp_path / "pm.json").read_text())
     assert saved["rows"] == rows and (tmp_path / "pm.csv").read_text().count("\n") == len(rows) + 1
-    (preset,) = document["presets"]
-    assert preset["preset"] == "fast" and preset["bytes"] != document["bytes"]  # another preset, other bytes
+    fast, unfiltered = document["codec_options"]
+    assert fast["codec_options"] == {"preset": "fast"} and unfiltered["codec_options"] == {"loop_filters": False}
+    assert document["bytes"] not in (fast["bytes"], unfiltered["bytes"])  # other x265 options, other bytes
+
+
+def test_codec_options_parse_yaml_values_and_refuse_a_bare_word(script):
+    assert script.codec_options("preset=placebo,loop_filters=false") == {"preset": "placebo", "loop_filters": False}
+    with pytest.raises(ValueError, match="'placebo' is not KEY=VALUE"):
+        script.codec_options("placebo")

@@ -88,6 +88,11 @@ RECT_OFF_MAX_QP = 21
 #: chair's streams 2-3.7% smaller at equal sample PSNR, for 1.3-3.5x x265's CPU (docs/benchmarks.md,
 #: "The full x265 analysis for small scenes"); the encoder chooses it for small scenes (:mod:`..effort`).
 FULL_ANALYSIS_PARAMS = ":rd=6"
+#: x265 parameters without the in-loop filters (sample adaptive offset and deblocking; option
+#: ``loop_filters=False``): made for pictures, they smooth across block edges between cells that hold
+#: unrelated Gaussians (docs/rate_control.md, "x265's loop filters"). The decoder reads the choice from
+#: the stream's own parameter sets.
+NO_LOOP_FILTER_PARAMS = ":sao=0:no-deblock=1"
 
 
 @register_codec
@@ -103,7 +108,8 @@ class HevcCodec(GridCodec):
     ``None`` = the preset's count) and ``threads`` (x265
     worker threads; ``None`` = all cores; the bytes do not depend on it) and ``analysis``
     (``"preset"``, default, or ``"full"``: RD level 6 for every lossy stream, a few percent smaller
-    for 1.3-3.5x the CPU; the decoder does not need it).
+    for 1.3-3.5x the CPU; the decoder does not need it) and ``loop_filters`` (x265's SAO and
+    deblocking on lossy streams, default ``True``; ``False`` codes without them).
     """
 
     name = "hevc"
@@ -117,6 +123,7 @@ class HevcCodec(GridCodec):
         bframes: int | None = 0,
         threads: int | None = None,
         analysis: str = "preset",
+        loop_filters: bool = True,
     ) -> None:
         if layout not in LAYOUTS:
             raise ValidationError(f"hevc: layout must be one of {', '.join(LAYOUTS)}, got {reprlib.repr(layout)}")
@@ -132,11 +139,17 @@ class HevcCodec(GridCodec):
             raise ValidationError(f"hevc: threads must be a positive integer or None, got {reprlib.repr(threads)}")
         if analysis not in ANALYSES:
             raise ValidationError(f"hevc: analysis must be one of {', '.join(ANALYSES)}, got {reprlib.repr(analysis)}")
-        # the preset's analysis is not recorded: files coded with it keep the codec options of earlier versions
-        full = {"analysis": analysis} if analysis != "preset" else {}
-        super().__init__(layout=layout, preset=preset, tune=tune, depth=depth, bframes=bframes, threads=threads, **full)
+        if not isinstance(loop_filters, bool):
+            raise ValidationError(f"hevc: loop_filters must be true or false, got {reprlib.repr(loop_filters)}")
+        # the defaults of these two are not recorded: files coded with them keep the codec options of earlier versions
+        recorded = {"analysis": analysis} if analysis != "preset" else {}
+        if not loop_filters:
+            recorded["loop_filters"] = False
+        super().__init__(layout=layout, preset=preset, tune=tune, depth=depth, bframes=bframes, threads=threads,
+                         **recorded)
         self.layout, self.preset, self.tune = layout, preset, tune
         self.depth, self.bframes, self.threads, self.analysis = depth, bframes, threads, analysis
+        self.loop_filters = loop_filters
 
     @classmethod
     def check_available(cls) -> None:
@@ -175,6 +188,8 @@ class HevcCodec(GridCodec):
                     extra += f":bframes={self.bframes}" if self.bframes is not None else ""
             if self.analysis == "full" and qp is not None:
                 extra += FULL_ANALYSIS_PARAMS
+            if not self.loop_filters and qp is not None:
+                extra += NO_LOOP_FILTER_PARAMS
             parts.append((sum(f.size for f in frames), functools.partial(self._encode_stream, frames, pix_fmt, qp, extra)))
         head = bytes([LAYOUTS.index(self.layout), shift])
         return parts, lambda streams: head + join_chunks(streams)
