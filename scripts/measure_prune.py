@@ -8,7 +8,8 @@ against the uncompressed model's renders (and against the photos with ``--images
 of the pruned model before coding. Importance comes from the training cameras (every
 ``--test-every``-th camera in name order is held out for the PSNR) or, without cameras, from the
 orbit views of :func:`importance_views`; the PSNR of orbit scenes is measured on other orbit views
-(another ring offset, wider). ``--stability`` measures how the ranking moves with the render width.
+(another ring offset, wider). ``--stability`` measures how the ranking moves with the render width,
+``--view-counts`` how it moves with the number of views (a capture's cameras, ``importance.MAX_VIEWS`` of them at most).
 
     python scripts/measure_prune.py ../shared/data/scenes/bonsai_cpu_sh3/point_cloud.ply \\
         --cameras ../shared/data/scenes/bonsai_cpu_sh3/cameras.json \\
@@ -29,7 +30,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from gscodec_shac.camera import orbit_views, test_split  # noqa: E402
+from gscodec_shac.camera import orbit_views, spread_views, test_split  # noqa: E402
 from gscodec_shac.codec import Decoder, Encoder, load_rate_point  # noqa: E402
 from gscodec_shac.codec.defaults import DEFAULT_RATE_POINT, choose_default_sh  # noqa: E402
 from gscodec_shac.codec.importance import gaussian_importance, importance_views, keep_count, most_important  # noqa: E402
@@ -100,6 +101,31 @@ def stability(cloud, views, widths: list[int], eval_views, reference) -> list[di
     return out
 
 
+def view_count_stability(cloud, views, counts: list[int], eval_views, reference,
+                         shares: tuple[float, ...] = (0.6, 0.45)) -> list[dict]:
+    """The importance from ``count`` of ``views`` (spread evenly in name order, as :func:`importance_views`
+    spreads a scene's cameras) against the importance from all of them: the top-half overlap, the rank
+    correlation, and the PSNR (against the uncompressed model) of the cloud pruned to each of ``shares``."""
+    from scipy.stats import spearmanr
+
+    counts = sorted({min(c, len(views)) for c in counts} | {len(views)})
+    out, ranks = [], {}
+    for count in counts:
+        tic = time.process_time()
+        ranks[count] = gaussian_importance(cloud, spread_views(views, count))
+        out.append({"views": count, "cpu_s": time.process_time() - tic})
+    n, every = cloud.num_gaussians, ranks[len(views)]
+    best = set(most_important(every, np.arange(n), n // 2).tolist())
+    for row in out:
+        rank = ranks[row["views"]]
+        row["top_half_overlap"] = len(best & set(most_important(rank, np.arange(n), n // 2).tolist())) / len(best)
+        row["spearman"] = float(spearmanr(rank, every).statistic)
+        for share in shares:
+            kept = cloud.select(most_important(rank, np.arange(n), keep_count(n, share)))
+            row[f"psnr_ref_keep_{share:g}"] = mean_psnr(renders(kept, eval_views), reference)
+    return out
+
+
 def scene_arguments(ap: argparse.ArgumentParser) -> None:
     """The model, its cameras and photos, the held-out split, and where the results go."""
     ap.add_argument("model")
@@ -118,6 +144,8 @@ def main() -> None:
     ap.add_argument("--shares", default=",".join(map(str, SHARES)))
     ap.add_argument("--rate-point", default=DEFAULT_RATE_POINT)
     ap.add_argument("--stability", default="", help="comma-separated widths, e.g. 50,100,200")
+    ap.add_argument("--view-counts", default="", help="comma-separated numbers of importance views, e.g. 16,32,64: "
+                    "each ranking against the one from every view")
     args = ap.parse_args()
     up = tuple(float(v) for v in args.up.split(","))
     cloud, _ = read_model(args.model)
@@ -137,6 +165,11 @@ def main() -> None:
         result["stability"] = stability(cloud, views, [int(w) for w in args.stability.split(",")], eval_views,
                                         reference)
         print(json.dumps(result["stability"]), flush=True)
+    if args.view_counts:
+        result["view_counts"] = view_count_stability(cloud, views, [int(c) for c in args.view_counts.split(",")],
+                                                     eval_views, reference)
+        for row in result["view_counts"]:
+            print(json.dumps(row), flush=True)
     if gt is not None:
         result["uncompressed_psnr_gt"] = mean_psnr(reference, gt)
     base = load_rate_point(args.rate_point)
