@@ -3,8 +3,6 @@ streams, recorded in the header only when off, decoded by any decoder from the s
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 
@@ -12,11 +10,7 @@ from gscodec_shac.codec.grid import get_codec
 from gscodec_shac.codec.grid.hevc import NO_LOOP_FILTER_PARAMS
 from gscodec_shac.errors import ValidationError
 from tests.test_codecs import smooth_planes
-
-
-def _x265_params(folder) -> list[str]:
-    return [json.loads(line)["options"]["x265-params"]
-            for path in folder.glob("x265-*.jsonl") for line in path.read_text().splitlines()]
+from tests.test_effort import _x265_params
 
 
 def test_without_loop_filters_lossy_streams_differ_and_decode_with_a_default_decoder(tmp_path, monkeypatch):
