@@ -78,26 +78,44 @@ def save(result: dict, out: str) -> None:
     Path(out).write_text(json.dumps(result, indent=2))
 
 
+def rankings(cloud, view_sets: dict[int, list], key: str) -> tuple[list[dict], dict[int, np.ndarray]]:
+    """The importance from each of ``view_sets`` (by a width or a count), with its CPU seconds: the rows
+    ``{key: ..., "cpu_s": ...}`` and the rankings by the same keys."""
+    out, ranks = [], {}
+    for value, views in view_sets.items():
+        tic = time.process_time()
+        ranks[value] = gaussian_importance(cloud, views)
+        out.append({key: value, "cpu_s": time.process_time() - tic})
+    return out, ranks
+
+
+def agreement(rank: np.ndarray, reference: np.ndarray) -> dict[str, float]:
+    """How far ``rank`` agrees with the ``reference`` ranking: the share of the reference's most important
+    half that ``rank`` also puts in its top half, and the rank correlation (Spearman)."""
+    from scipy.stats import spearmanr
+
+    n = rank.size
+    best = set(most_important(reference, np.arange(n), n // 2).tolist())
+    mine = set(most_important(rank, np.arange(n), n // 2).tolist())
+    return {"top_half_overlap": len(best & mine) / len(best), "spearman": float(spearmanr(rank, reference).statistic)}
+
+
+def pruned_psnr(cloud, rank: np.ndarray, count: int, eval_views, reference) -> float:
+    """PSNR (against the uncompressed model's ``reference`` renders) of ``cloud`` pruned to the ``count``
+    Gaussians ``rank`` puts first."""
+    kept = cloud.select(most_important(rank, np.arange(cloud.num_gaussians), count))
+    return mean_psnr(renders(kept, eval_views), reference)
+
+
 def stability(cloud, views, widths: list[int], eval_views, reference) -> list[dict]:
     """Top-half overlap and rank correlation of the importance at each width with the widest, and the
     PSNR (against the uncompressed model) of the cloud pruned to its most important half by it."""
-    from scipy.stats import spearmanr
-
-    out, ranks = [], {}
-    for width in widths:
-        scaled = [v.resized(width, max(1, round(v.height * width / v.width))) for v in views]
-        tic = time.process_time()
-        ranks[width] = gaussian_importance(cloud, scaled)
-        out.append({"width": width, "cpu_s": time.process_time() - tic})
-    top = widths[-1]
-    n = cloud.num_gaussians
-    best = set(most_important(ranks[top], np.arange(n), n // 2).tolist())
+    out, ranks = rankings(cloud, {width: [v.resized(width, max(1, round(v.height * width / v.width)))
+                                          for v in views] for width in widths}, "width")
     for row in out:
-        mine = set(most_important(ranks[row["width"]], np.arange(n), n // 2).tolist())
-        row["top_half_overlap"] = len(best & mine) / len(best)
-        row["spearman"] = float(spearmanr(ranks[row["width"]], ranks[top]).statistic)
-        half = cloud.select(np.array(sorted(mine)))
-        row["psnr_ref_half"] = mean_psnr(renders(half, eval_views), reference)
+        rank = ranks[row["width"]]
+        row.update(agreement(rank, ranks[widths[-1]]))
+        row["psnr_ref_half"] = pruned_psnr(cloud, rank, cloud.num_gaussians // 2, eval_views, reference)
     return out
 
 
@@ -106,23 +124,14 @@ def view_count_stability(cloud, views, counts: list[int], eval_views, reference,
     """The importance from ``count`` of ``views`` (spread evenly in name order, as :func:`importance_views`
     spreads a scene's cameras) against the importance from all of them: the top-half overlap, the rank
     correlation, and the PSNR (against the uncompressed model) of the cloud pruned to each of ``shares``."""
-    from scipy.stats import spearmanr
-
     counts = sorted({min(c, len(views)) for c in counts} | {len(views)})
-    out, ranks = [], {}
-    for count in counts:
-        tic = time.process_time()
-        ranks[count] = gaussian_importance(cloud, spread_views(views, count))
-        out.append({"views": count, "cpu_s": time.process_time() - tic})
-    n, every = cloud.num_gaussians, ranks[len(views)]
-    best = set(most_important(every, np.arange(n), n // 2).tolist())
+    out, ranks = rankings(cloud, {count: spread_views(views, count) for count in counts}, "views")
     for row in out:
         rank = ranks[row["views"]]
-        row["top_half_overlap"] = len(best & set(most_important(rank, np.arange(n), n // 2).tolist())) / len(best)
-        row["spearman"] = float(spearmanr(rank, every).statistic)
+        row.update(agreement(rank, ranks[len(views)]))
         for share in shares:
-            kept = cloud.select(most_important(rank, np.arange(n), keep_count(n, share)))
-            row[f"psnr_ref_keep_{share:g}"] = mean_psnr(renders(kept, eval_views), reference)
+            row[f"psnr_ref_keep_{share:g}"] = pruned_psnr(cloud, rank, keep_count(cloud.num_gaussians, share),
+                                                          eval_views, reference)
     return out
 
 
