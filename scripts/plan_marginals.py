@@ -26,6 +26,7 @@ docs/rate_control.md, "Is the plan the best allocation on held-out views?").
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 from pathlib import Path
@@ -127,7 +128,6 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
     from gscodec_shac.camera import test_split
     from gscodec_shac.codec import rate_control as rc
-    from gscodec_shac.codec.encoder import Encoder
     from gscodec_shac.io.cameras import load_cameras
     from gscodec_shac.io.models import read_model
     from gscodec_shac.render import Renderer
@@ -175,10 +175,12 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         print(f"{label:18s} {size - base_bytes:+8d} bytes  MSE x1e9: model {1e9 * rows[-1]['model_d_mse']:+8.1f}  "
               f"views {1e9 * rows[-1]['views_d_mse']:+8.1f}  judges {1e9 * rows[-1]['judges_d_mse']:+8.1f}", flush=True)
     recoded = []
+    plan = controller._predict(base)
     for options in option_sets:
-        point = controller._predict(base).rate_point.with_overrides(codec_options=options)
-        stream = Encoder(point, sh_stage=controller.stage_, fit_stage=False, workers=controller.workers,
-                         importance=controller.importance_, stage_features=controller._stage_features).encode(cloud)
+        # the controller's own encode (its cache: the placement is reused, the chunks coded with these options)
+        variant = dataclasses.replace(plan, point_of=lambda settings, options=options:
+                                      plan.point_of(settings).with_overrides(codec_options=options))
+        stream = controller._encode(variant, target)
         judges_mse = judged_mse(rc._decoded(stream, controller.workers))
         recoded.append({"codec_options": options, "bytes": stream.total_bytes(), "judges_psnr": rc._psnr(judges_mse),
                         "d_judges_psnr": rc._psnr(judges_mse) - rc._psnr(base_judges)})
