@@ -238,8 +238,8 @@ def codec_experiment(cloud, args) -> int:
         settings += [("ER", float(e)) for e in args.codec_er.split(",")]
         for mode, value in settings:
             params = {"n_components": value} if mode == "fixed-M" else {"energy_retention": value}
-            if k > 1:
-                params.update(spatial_clusters=k, seed=args.seed)
+            if k > 1:  # the regions' fitted scores, as when docs/ablations.md's table was measured (before format 2.5)
+                params.update(spatial_clusters=k, seed=args.seed, unit_weights=False)
             encoder = Encoder(args.codec, sh_stage="pca" if k == 1 else "pca-spatial", sh_params=params,
                               codec_options={"preset": args.preset}, workers=1)
             data = encoder.encode(cloud, grid=grid).to_bytes()

@@ -21,6 +21,10 @@ beside the stored streams with ``--record-encoder-change "REASON"``):
     python scripts/make_stream_fixtures.py --version 2.2
     python scripts/make_stream_fixtures.py --version 2.3
     python scripts/make_stream_fixtures.py --version 2.4
+    python scripts/make_stream_fixtures.py --version 2.5
+
+(v2.4's ``ladder_rp5_pca_spatial`` was added later, written by the code of commit 99e3bb0, the last
+before format 2.5 changed what the ``pca-spatial`` stage writes by default.)
 """
 
 from __future__ import annotations
@@ -92,8 +96,19 @@ CASES_V24: dict[str, dict] = {
                                       "params": {}},
     "ladder_rp5_pca_parameter_sets": {"input": "input_sh3.ply", "rate_point": "shac_ladder:rp5", "sh": "pca",
                                       "params": {"energy_retention": 0.99}},
+    "ladder_rp5_pca_spatial": {"input": "input_sh3.ply", "rate_point": "shac_ladder:rp5", "sh": "pca-spatial",
+                               "params": {"energy_retention": 0.99, "spatial_clusters": 2}},
 }
-CASES = {"1.0": CASES_V1, "2.0": CASES_V2, "2.1": CASES_V21, "2.2": CASES_V22, "2.3": CASES_V23, "2.4": CASES_V24}
+#: Container 2.5 cases: the pca-spatial stage's features scaled per region to unit weights (feature
+#: sh_spatial_unit_weights), its bases in float16.
+CASES_V25: dict[str, dict] = {
+    "ladder_rp5_pca_spatial_unit_weights": {"input": "input_sh3.ply", "rate_point": "shac_ladder:rp5",
+                                            "sh": "pca-spatial", "params": {"energy_retention": 0.99,
+                                                                            "spatial_clusters": 2,
+                                                                            "side_dtype": "float16"}},
+}
+CASES = {"1.0": CASES_V1, "2.0": CASES_V2, "2.1": CASES_V21, "2.2": CASES_V22, "2.3": CASES_V23, "2.4": CASES_V24,
+         "2.5": CASES_V25}
 
 
 def write_inputs() -> None:

@@ -39,7 +39,7 @@ VERSIONS = sorted((p for p in FIXTURES.glob("v*") if p.is_dir()), key=lambda p: 
 CASES = [(folder, name) for folder in VERSIONS for name in json.loads((folder / "manifest.json").read_text())["cases"]]
 ARRAYS = ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")
 #: Arrays that come out of a stage's matrix product, by SH stage.
-PRODUCTS = {"pca": ("sh_rest", "sh_dc")}
+PRODUCTS = {"pca": ("sh_rest", "sh_dc"), "pca-spatial": ("sh_rest",)}
 
 
 def network_inputs(case: dict) -> tuple[DeformArch, dict[str, np.ndarray]]:

@@ -71,3 +71,29 @@ def test_codec_options_parse_yaml_values_and_refuse_a_bare_word(script):
     assert script.codec_options("preset=placebo,loop_filters=false") == {"preset": "placebo", "loop_filters": False}
     with pytest.raises(ValueError, match="'placebo' is not KEY=VALUE"):
         script.codec_options("placebo")
+
+
+def test_sh_stage_at_plan_codes_the_plan_with_each_stage_and_scores_it(tmp_path, small_scene):
+    script = load_script("sh_stage_at_plan")
+    from gscodec_shac.io.inria_cameras import write_inria_cameras
+    from gscodec_shac.io.ply import write_ply
+
+    assert script.stage_variant("pca-spatial:spatial_clusters=2,side_dtype=float16") == \
+        ("pca-spatial", {"spatial_clusters": 2, "side_dtype": "float16"})
+    with pytest.raises(ValueError, match="names no SH stage"):
+        script.stage_variant(":spatial_clusters=2")
+    ply, cameras = tmp_path / "in.ply", tmp_path / "cameras.json"
+    write_ply(ply, small_scene.cloud)
+    write_inria_cameras(cameras, small_scene.cameras)
+    document = script.main([str(ply), "--cameras", str(cameras), "--test-every", "4", "--bpg", "120",
+                            "--stage", "pca-spatial:spatial_clusters=2", "--sh-offsets=-2,0,2",
+                            "--out", str(tmp_path / "st")])
+    rows = document["rows"]
+    assert [row["stage"] for row in rows] == [document["template_stage"]] * 3 + ["pca-spatial"] * 3
+    for curve in (rows[:3], rows[3:]):  # a coarser SH base QP, a smaller file
+        assert [row["sh"] - document["plan"]["sh"] for row in curve] == [-2, 0, 2]
+        assert curve[0]["bytes"] > curve[1]["bytes"] > curve[2]["bytes"]
+    # one basis against two: the second one's state is larger, and the BD-rate is measured on both curves
+    assert rows[4]["sh_state_bytes"] > rows[1]["sh_state_bytes"] > 0
+    assert document["bd_rates"][0]["bd_rate_percent"] == pytest.approx(script.bd_against(rows[:3], rows[3:]))
+    assert (tmp_path / "st.csv").read_text().count("\n") == 7

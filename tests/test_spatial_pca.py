@@ -101,3 +101,103 @@ def test_encoder_decoder_round_trip(small_cloud):
     assert state.arrays["labels"].shape == (2000,)  # the region of every coded Gaussian travels in the state
     assert errors["pca-spatial"] < 0.2 * errors["pca"]
     assert sizes["pca-spatial"] < sizes["pca"] + 4000  # the labels and a second basis cost little here
+
+
+def _unit_error_per_region(stage, ac, channel, metric=None):
+    """The rendered SH error (in ``metric``, else the plain sum of squares) that one unit of error on
+    ``channel`` causes in the rows of each region, averaged over the region's rows."""
+    features = stage.transform(ac)
+    moved = features.copy()
+    moved[:, channel] += 1.0
+    delta = (stage.inverse_transform(moved) - stage.inverse_transform(features)).astype(np.float64)
+    cost = np.einsum("nk,kl,nl->n", delta, metric, delta) if metric is not None else (delta ** 2).sum(axis=1)
+    return np.array([cost[stage.labels_ == region].mean() for region in range(len(stage.pcas_))])
+
+
+@pytest.mark.parametrize("with_metric", [False, True])
+def test_unit_weights_make_a_unit_error_cost_the_same_in_every_region(small_cloud, with_metric):
+    cloud = _two_regions(small_cloud)
+    ac = cloud.ac_matrix()
+    rng = np.random.default_rng(3)
+    root = rng.normal(size=(45, 45))
+    metric = root @ root.T / 45 + np.eye(45) if with_metric else None
+    costs = {}
+    for unit in (True, False):
+        stage = SpatialPCA(spatial_clusters=2, n_components=3, unit_weights=unit)
+        stage.set_positions(cloud.means)
+        stage.set_metric(metric)
+        stage.fit(ac)
+        costs[unit] = np.array([_unit_error_per_region(stage, ac, j, metric) for j in range(3)])
+        if unit:
+            assert np.allclose(stage.feature_weights(), 1.0)
+    assert np.allclose(costs[True], 1.0, rtol=1e-3)  # every channel, every region: one unit of rendered error
+    if with_metric:  # SHAC-PCA in a metric already scales its components to unit error: the gains are 1
+        assert np.allclose(costs[False], 1.0, rtol=1e-3)
+    else:  # the fitted scores of the paper's metric: a unit error costs each region its own amount
+        assert not np.allclose(costs[False], costs[False][:, :1], rtol=0.05)
+
+
+def test_unit_weight_gains_travel_in_the_state_and_need_format_2_5(small_cloud):
+    cloud = _two_regions(small_cloud)
+    point = parse_rate_points({"points": {"p": {"codec": "raw", "bits": 16, "sort": {"method": "morton"}}}}, "t")["p"]
+    for unit, side in ((True, "float16"), (False, "float32")):
+        params = {"n_components": 3, "spatial_clusters": 2, "unit_weights": unit, "side_dtype": side}
+        encoder = Encoder(point, sh_stage="pca-spatial", sh_params=params)
+        stream = encoder.encode(cloud)
+        state = StageState.from_bytes(zlib.decompress(stream.chunk("sh_state").data))
+        assert ("g0" in state.arrays) is unit and state.params.get("unit_weights") is (True if unit else None)
+        assert state.arrays["r0_components"].dtype == np.dtype(side)
+        assert ("sh_spatial_unit_weights" in stream.features) is unit
+        decoded = Decoder().decode(stream.to_bytes())
+        error = float(((decoded.ac_matrix() - cloud.ac_matrix()[encoder.order_]) ** 2).mean())
+        assert error < 1e-3 * float((cloud.ac_matrix() ** 2).mean())
+    # a state whose gains do not fit its components is refused, naming the stage
+    stage = SpatialPCA(spatial_clusters=2, n_components=3)
+    stage.set_positions(cloud.means)
+    bad = stage.fit(cloud.ac_matrix()).state()
+    bad.arrays["g1"] = bad.arrays["g1"][:2]
+    with pytest.raises(GscodecError, match="pca-spatial state is inconsistent"):
+        stage_from_state(bad)
+
+
+def test_a_decoder_without_the_unit_weights_feature_refuses_the_stream(small_cloud, monkeypatch):
+    from gscodec_shac.codec import container
+    from gscodec_shac.errors import BitstreamError
+
+    point = parse_rate_points({"points": {"p": {"codec": "raw", "bits": 16, "sort": {"method": "morton"}}}}, "t")["p"]
+    data = Encoder(point, sh_stage="pca-spatial", sh_params={"n_components": 3, "spatial_clusters": 2}) \
+        .encode(small_cloud).to_bytes()
+    assert Bitstream_version(data) == (2, 5)
+    monkeypatch.delitem(container.FEATURES, "sh_spatial_unit_weights")
+    with pytest.raises(BitstreamError, match="sh_spatial_unit_weights"):
+        Decoder().decode(data)
+
+
+def Bitstream_version(data: bytes) -> tuple[int, int]:
+    import struct
+
+    return struct.unpack_from("<HH", data, 8)
+
+
+def test_a_fitted_stage_codes_other_rows_and_orders_with_their_own_regions(small_cloud):
+    """The rate controller fits the stage once on the whole cloud and codes it in grid order (its features
+    given) and codes samples of it (the probe): each coded row must travel with its own region."""
+    cloud = _two_regions(small_cloud)
+    ac = cloud.ac_matrix()
+    point = parse_rate_points({"points": {"p": {"codec": "raw", "bits": 16, "sort": {"method": "morton"}}}}, "t")["p"]
+    stage = SpatialPCA(spatial_clusters=2, n_components=3)
+    stage.set_positions(cloud.means)
+    features = stage.fit_transform(ac)
+    rows = np.sort(np.random.default_rng(5).choice(cloud.num_gaussians, 700, replace=False))
+    for sample, given in ((np.arange(cloud.num_gaussians), features), (rows, None)):
+        encoder = Encoder(point, sh_stage=stage, fit_stage=False, stage_features=given)
+        decoded = Decoder().decode(encoder.encode(cloud.select(sample)).to_bytes())
+        truth = ac[sample][encoder.order_]
+        assert float(((decoded.ac_matrix() - truth) ** 2).mean()) < 1e-3 * float((truth ** 2).mean())
+    assert stage.labels_.size == cloud.num_gaussians  # the caller's stage keeps its own rows
+    # the probe's rows take the regions they were fitted in
+    probe = SpatialPCA(spatial_clusters=2, n_components=3)
+    probe.set_positions(cloud.means)
+    probe.fit(ac)
+    probe.locate_rows(cloud.means[rows])
+    assert np.array_equal(probe.labels_, stage.labels_[rows])

@@ -15,7 +15,8 @@ Versions. A stream is written with the oldest version that can hold it: 1.0 when
 uses no optional feature (so files that 1.0 decoders read stay byte-identical), else
 the newest version any of its features needs (:data:`FEATURE_VERSIONS`: 2.0, 2.1 for a
 quantised deformation network, 2.2 for one with a bit count per matrix, 2.3 for DC-only
-Gaussians, 2.4 for rotation vectors and shared HEVC parameter sets). Version 2 headers are
+Gaussians, 2.4 for rotation vectors and shared HEVC parameter sets, 2.5 for spatial SH bases with
+unit-weight features). Version 2 headers are
 deflated (zlib; the header length and CRC are of the stored bytes) and list in
 ``header["features"]`` the sorted names of the features the stream needs (see :data:`FEATURES`).
 A decoder refuses a feature it does not know, naming it, instead of decoding the stream wrongly.
@@ -67,11 +68,13 @@ FEATURES: dict[str, str] = {
                        "takes four (codec/attributes.py)",
     "hevc_parameter_sets": "the HEVC streams' parameter sets (VPS, SPS, PPS) stored once, in chunk "
                            "'hevc_parameter_sets' (codec/parameter_sets.py)",
+    "sh_spatial_unit_weights": "the pca-spatial SH stage's features scaled per region by the gains in its state "
+                               "(shac/spatial_pca.py)",
 }
 #: The version a stream needing the feature is written as (2.0 unless listed).
 FEATURE_VERSIONS: dict[str, tuple[int, int]] = {"deformation_quantised": (2, 1), "deformation_mixed_bits": (2, 2),
                                                  "sh_dc_only": (2, 3), "rotation_vector": (2, 4),
-                                                 "hevc_parameter_sets": (2, 4)}
+                                                 "hevc_parameter_sets": (2, 4), "sh_spatial_unit_weights": (2, 5)}
 _PREAMBLE = struct.Struct("<8sHHII")
 PREAMBLE_SIZE = _PREAMBLE.size  # 20
 _MAX_CHUNKS = 4096

@@ -314,6 +314,8 @@ class Encoder:
         if stage is not None:
             raw = stage.state().to_bytes()
             stream.add_chunk("sh_state", zlib.compress(raw, 9), attribute="sh_state", encoding="zlib", raw_size=len(raw))
+            for feature in stage.stream_features():
+                stream.require(feature)
             sh_header = {
                 "stage": stage.name,
                 "features": int(n_features),
@@ -461,7 +463,10 @@ class Encoder:
         """The stage fitted on (or, fitted already, applied to) the rows ``ac`` of ``cloud``."""
         fit = self.fit_stage or self._stage_instance is None
         if not fit and self.stage_features is not None:  # the caller's features of the input rows, gathered
+            stage.restrict_rows(ac.index)  # and the stage's per-row side information (pca-spatial's regions)
             return np.asarray(self.stage_features[ac.index])
+        if not fit:  # other rows of the fitted scene (the controller's probe): per-row side information anew
+            stage.locate_rows(cloud.means)
         if not stage.reads_row_blocks or stage.uses_dc:
             ac = np.asarray(ac)
         if stage.uses_dc:

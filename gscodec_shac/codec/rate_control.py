@@ -1305,6 +1305,8 @@ def fitted_stage(point: RatePoint, cloud: GaussianCloud, metric: np.ndarray | No
     stage = make_stage(point.sh_stage, **point.sh_params)
     if metric is not None:
         stage.set_metric(metric)
+    if stage.uses_positions:  # pca-spatial: its regions (each encode keeps the labels of its rows)
+        stage.set_positions(cloud.means)
     ac = cloud.ac_matrix()
     return stage.fit(np.concatenate([cloud.sh_dc, ac], axis=1) if stage.uses_dc else ac)
 

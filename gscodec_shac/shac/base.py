@@ -189,6 +189,21 @@ class ShStage(ABC):
         """The (N, 3) positions of the rows the next :meth:`fit` sees (stages with ``uses_positions``)."""
         self.positions_ = np.asarray(positions, dtype=np.float64)
 
+    def restrict_rows(self, index: np.ndarray) -> None:
+        """Keep only the per-row side information (if any) of the fitted rows ``index``, in that order: a
+        fitted stage applied to a subset of its rows (the rate controller's encodes, which prune and place
+        the rows of the cloud it was fitted on). Stages without per-row side information ignore it."""
+
+    def locate_rows(self, positions: np.ndarray) -> None:
+        """Per-row side information (if any) for other rows of the scene the stage was fitted on, from their
+        (N, 3) ``positions`` (the rate controller's probe codes a sample of the cloud). Ignored by stages
+        without per-row side information."""
+
+    def stream_features(self) -> tuple[str, ...]:
+        """The container features (:data:`gscodec_shac.codec.container.FEATURES`) a stream of this fitted
+        stage's state needs, so that a decoder without them refuses it; none by default."""
+        return ()
+
     @abstractmethod
     def fit(self, ac: np.ndarray) -> "ShStage":
         """Learn the side information from an (N, K') matrix; returns ``self``."""

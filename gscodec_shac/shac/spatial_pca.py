@@ -12,9 +12,19 @@ SHAC-PCA (eq. 23-29, :class:`~gscodec_shac.shac.pca.ShacPCA`) per region:
 
 The features are the regions' scores in one set of ``max M_c`` channels (a region with a
 lower rank leaves its trailing channels at 0), coded like SHAC-PCA's. The state holds
-every region's P, mu, sigma (float32) and the region label of every Gaussian, in the
+every region's P, mu, sigma (``side_dtype``) and the region label of every Gaussian, in the
 order the features are coded (the codec's grid order); the codec deflates it, so the
 labels are counted in the rate. The decoder needs no positions.
+
+``unit_weights`` (the default; format 2.5, feature ``sh_spatial_unit_weights``; states without it
+decode as before): each region's component j is scaled by the square root of its weight (eq. 29's
+``b_j``), so a unit error on any channel costs one unit of rendered SH error in every region.
+Without it, in the paper's metric, channel j of two regions carries scores of different weights
+under one quantiser and one water-filled QP, which :meth:`feature_weights` can only average: at
+the rate controller's plan on the chair that coded 1.4-3.4 dB below the global basis at equal size
+(docs/ablations.md, "Spatially varying bases"). In a metric (:meth:`set_metric`, e.g. the cameras'
+view metric) SHAC-PCA's components already cost one unit each and the gains are 1. The gains
+travel in the state (float32, M_c per region).
 
 Positions come from the encoder (``uses_positions``: :meth:`set_positions` before
 :meth:`fit`). :meth:`transform` and :meth:`inverse_transform` work on the N fitted rows in
@@ -24,13 +34,14 @@ region's basis. Measured on bonsai: docs/ablations.md ("Spatially varying bases"
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from gscodec_shac.errors import GscodecError, ValidationError
 from gscodec_shac.shac.base import ShStage, StageParam, StageState, check_ac_matrix, register_stage
-from gscodec_shac.shac.pca import DEFAULT_ENERGY_RETENTION, ShacPCA
+from gscodec_shac.shac.pca import DEFAULT_ENERGY_RETENTION, SIDE_DTYPES, ShacPCA
 from gscodec_shac.shac.vq import _kmeans, _nearest
 from gscodec_shac.validate import Where
 
@@ -42,20 +53,38 @@ MIN_REGION_ROWS = 64
 def cluster_positions(positions: np.ndarray, k: int, seed: int = 0, n_iter: int = 20) -> np.ndarray:
     """Region label (0..k'-1, consecutive) of each position by k-means; k' <= k, as regions of fewer
     than ``MIN_REGION_ROWS`` rows are merged into the nearest larger one. Independent of the row order."""
+    return fit_regions(positions, k, seed, n_iter)[0]
+
+
+def fit_regions(positions: np.ndarray, k: int, seed: int = 0,
+                n_iter: int = 20) -> tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]:
+    """:func:`cluster_positions`' labels and the function that gives any positions the label of their
+    nearest region centre (for the fitted positions, their labels)."""
     x = np.asarray(positions, dtype=np.float64)
     if k <= 1 or x.shape[0] <= 1:
-        return np.zeros(x.shape[0], dtype=np.int64)
-    x = ((x - x.mean(axis=0)) / np.maximum(x.std(axis=0), 1e-12)).astype(np.float32)
+        return np.zeros(x.shape[0], dtype=np.int64), _one_region
+    mean, std = x.mean(axis=0), np.maximum(x.std(axis=0), 1e-12)
+
+    def standardised(p: np.ndarray) -> np.ndarray:
+        return ((np.asarray(p, dtype=np.float64) - mean) / std).astype(np.float32)
+
+    x = standardised(x)
     canonical = x[np.lexsort(x.T[::-1])]  # the regions do not depend on the row order
     centres = _kmeans(canonical, min(k, x.shape[0]), np.random.default_rng(seed), n_iter, "kmeans++")
-    labels = _nearest(x, centres)
-    large = np.bincount(labels, minlength=centres.shape[0]) >= MIN_REGION_ROWS
+    large = np.bincount(_nearest(x, centres), minlength=centres.shape[0]) >= MIN_REGION_ROWS
     if not large.any():
-        return np.zeros(x.shape[0], dtype=np.int64)
-    if not large.all():  # a region too small for a PCA joins the nearest large one
-        labels = np.flatnonzero(large)[_nearest(x, centres[large])]
-    _, labels = np.unique(labels, return_inverse=True)  # consecutive labels
-    return labels.astype(np.int64)
+        return np.zeros(x.shape[0], dtype=np.int64), _one_region
+    # a region too small for a PCA joins the nearest large one: the large centres, in their order, are the regions
+    kept = centres[large]
+
+    def locate(p: np.ndarray) -> np.ndarray:
+        return _nearest(standardised(p), kept).astype(np.int64)
+
+    return locate(positions), locate
+
+
+def _one_region(positions: np.ndarray) -> np.ndarray:
+    return np.zeros(len(positions), dtype=np.int64)
 
 
 @register_stage
@@ -80,6 +109,10 @@ class SpatialPCA(ShStage):
         StageParam("n_components", "int", None, "components M of every region (instead of an ER)",
                    flag="components", lo=1, hi=128),
         StageParam("seed", "int", 0, "seed of the spatial k-means (encode's --seed sets it too)", lo=0, hi=2**32 - 1),
+        StageParam("unit_weights", "bool", True, "scale every region's components to one unit of rendered error "
+                   "(false: the scores as fitted, as before format 2.5)"),
+        StageParam("side_dtype", "choice", "float32", "precision of every region's P, mu, sigma",
+                   choices=tuple(SIDE_DTYPES)),
     )
 
     @classmethod
@@ -90,21 +123,34 @@ class SpatialPCA(ShStage):
         return params
 
     def __init__(self, spatial_clusters: int = 16, energy_retention: float | None = None,
-                 n_components: int | None = None, seed: int = 0) -> None:
+                 n_components: int | None = None, seed: int = 0, unit_weights: bool = True,
+                 side_dtype: str = "float32") -> None:
         if isinstance(spatial_clusters, bool) or not isinstance(spatial_clusters, (int, np.integer)) \
                 or not 1 <= spatial_clusters <= MAX_REGIONS:
             raise ValidationError(f"pca-spatial: spatial_clusters must be an integer in 1-{MAX_REGIONS}, "
                                   f"got {spatial_clusters!r}")
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValidationError(f"pca-spatial: seed must be a non-negative integer, got {seed!r}")
-        ShacPCA(n_components=n_components, energy_retention=energy_retention)  # validates both
+        ShacPCA(n_components=n_components, energy_retention=energy_retention, side_dtype=side_dtype)  # validates
         self.spatial_clusters = int(spatial_clusters)
         self.energy_retention = energy_retention
         self.n_components = n_components
         self.seed = int(seed)
+        self.unit_weights = bool(unit_weights)
+        self.side_dtype = side_dtype
         self.positions_: np.ndarray | None = None
+        self.metric_: np.ndarray | None = None
         self.labels_: np.ndarray | None = None
         self.pcas_: list[ShacPCA] | None = None
+        #: per region, the float32 factor of each component's scores (``unit_weights``); None: all 1
+        self.gains_: list[np.ndarray] | None = None
+        self._locate: Callable[[np.ndarray], np.ndarray] | None = None  # positions -> regions (after fit)
+
+    def set_metric(self, metric: np.ndarray | None) -> None:
+        """Fit every region's components in the error metric ``metric`` (:meth:`ShacPCA.set_metric`, e.g.
+        the cameras' view metric); with ``unit_weights`` the channels are then in units of that metric."""
+        ShacPCA().set_metric(metric)  # validates
+        self.metric_ = None if metric is None else np.asarray(metric, dtype=np.float64)
 
     # ----------------------------------------------------------------- fit
     def fit(self, ac: np.ndarray) -> "SpatialPCA":
@@ -112,13 +158,18 @@ class SpatialPCA(ShStage):
         ac = check_ac_matrix(ac)
         if self.positions_ is None or self.positions_.shape != (ac.shape[0], 3):
             raise ValidationError("pca-spatial needs the positions of the rows it fits (set_positions)")
-        labels = cluster_positions(self.positions_, self.spatial_clusters, self.seed)
+        labels, self._locate = fit_regions(self.positions_, self.spatial_clusters, self.seed)
         pcas = []
         for region in range(int(labels.max()) + 1):
             rows = ac[labels == region]
             m = None if self.n_components is None else min(self.n_components, ac.shape[1])
-            pcas.append(ShacPCA(n_components=m, energy_retention=None if m else self.energy_retention).fit(rows))
+            pca = ShacPCA(n_components=m, energy_retention=None if m else self.energy_retention,
+                          side_dtype=self.side_dtype)
+            pca.set_metric(self.metric_)
+            pcas.append(pca.fit(rows))
         self.labels_, self.pcas_ = labels, pcas
+        self.gains_ = [np.sqrt(np.maximum(p.feature_weights(), 1e-30)).astype(np.float32) for p in pcas] \
+            if self.unit_weights else None
         return self
 
     # ------------------------------------------------------------ transform
@@ -134,7 +185,8 @@ class SpatialPCA(ShStage):
         for region, pca in enumerate(self.pcas_):
             rows = labels == region
             if rows.any():
-                out[rows, : pca.n_components_] = pca.transform(ac[rows])
+                scores = pca.transform(ac[rows])
+                out[rows, : pca.n_components_] = scores if self.gains_ is None else scores * self.gains_[region]
         return out
 
     def inverse_transform(self, features: np.ndarray) -> np.ndarray:
@@ -146,12 +198,16 @@ class SpatialPCA(ShStage):
         for region, pca in enumerate(self.pcas_):
             rows = labels == region
             if rows.any():
-                out[rows] = pca.inverse_transform(features[rows, : pca.n_components_])
+                scores = features[rows, : pca.n_components_]
+                out[rows] = pca.inverse_transform(scores if self.gains_ is None else scores / self.gains_[region])
         return out
 
     def feature_weights(self) -> np.ndarray:
-        """Each channel's weight (see ShacPCA) averaged over the rows of the regions that use it."""
+        """Each channel's weight (see ShacPCA): 1 with ``unit_weights``, else averaged over the rows of
+        the regions that use it."""
         self._check_fitted()
+        if self.gains_ is not None:
+            return np.ones(self.n_components_)
         counts = np.bincount(self.labels_, minlength=len(self.pcas_)).astype(np.float64)
         weights = np.zeros(self.n_components_)
         for count, pca in zip(counts, self.pcas_):
@@ -163,9 +219,30 @@ class SpatialPCA(ShStage):
         self._check_fitted()
         if not 1 <= count <= self.n_components_:
             raise ValidationError(f"pca-spatial can keep 1 to {self.n_components_} components, not {count}")
-        for pca in self.pcas_:
+        for region, pca in enumerate(self.pcas_):
             if pca.n_components_ > count:
                 pca.keep_features(count)
+                if self.gains_ is not None:
+                    self.gains_[region] = self.gains_[region][:count]
+
+    def restrict_rows(self, index: np.ndarray) -> None:
+        """The region labels of the fitted rows ``index``, in that order (the rows an encode codes)."""
+        self._check_fitted()
+        self.labels_ = self.labels_[np.asarray(index, dtype=np.int64)]
+
+    def locate_rows(self, positions: np.ndarray) -> None:
+        """The next rows are other Gaussians of the fitted scene (e.g. the rate controller's probe): each
+        takes the region of the nearest region centre (for a fitted row, its own region)."""
+        self._check_fitted()
+        if self._locate is None:
+            raise ValidationError("this pca-spatial stage was rebuilt from a state: it has no region centres")
+        self.labels_ = self._locate(positions)
+
+    def stream_features(self) -> tuple[str, ...]:
+        """``sh_spatial_unit_weights`` (format 2.5) with ``unit_weights``: an older decoder would read the
+        scaled features as scores."""
+        self._check_fitted()
+        return ("sh_spatial_unit_weights",) if self.gains_ is not None else ()
 
     # ---------------------------------------------------------------- sizes
     @property
@@ -183,7 +260,8 @@ class SpatialPCA(ShStage):
         return [int(p.n_components_) for p in self.pcas_]
 
     def state(self) -> StageState:
-        """Region labels (uint8, row order) and every region's SHAC-PCA state (float32)."""
+        """Region labels (uint8, row order), every region's SHAC-PCA state (``side_dtype``) and, with
+        ``unit_weights``, its gains (float32)."""
         self._check_fitted()
         arrays: dict[str, np.ndarray] = {"labels": self.labels_.astype(np.uint8)}
         regions = []
@@ -191,7 +269,12 @@ class SpatialPCA(ShStage):
             state = pca.state()
             regions.append(state.params)
             arrays.update({f"r{region}_{key}": value for key, value in state.arrays.items()})
-        return StageState(self.name, {"regions": regions, "spatial_clusters": self.spatial_clusters}, arrays)
+            if self.gains_ is not None:
+                arrays[f"g{region}"] = self.gains_[region]
+        params: dict[str, Any] = {"regions": regions, "spatial_clusters": self.spatial_clusters}
+        if self.gains_ is not None:  # recorded only when on: a state without it is one of before the option
+            params["unit_weights"] = True
+        return StageState(self.name, params, arrays)
 
     @classmethod
     def from_state(cls, state: StageState) -> "SpatialPCA":
@@ -205,14 +288,21 @@ class SpatialPCA(ShStage):
                 prefix = f"r{region}_"
                 arrays = {key[len(prefix):]: v for key, v in state.arrays.items() if key.startswith(prefix)}
                 pcas.append(ShacPCA.from_state(StageState("pca", params, arrays)))
+            unit = state.params.get("unit_weights", False) is True
+            gains = [np.asarray(state.arrays[f"g{region}"], dtype=np.float32) for region in range(len(pcas))] \
+                if unit else None
         except (KeyError, TypeError, ValueError) as exc:
             raise GscodecError(f"pca-spatial state is incomplete ({exc})") from None
+        if gains is not None and any(g.shape != (p.n_components_,) or not np.all(np.isfinite(g)) or np.any(g <= 0)
+                                     for g, p in zip(gains, pcas)):
+            raise GscodecError("pca-spatial state is inconsistent (a region's gains do not fit its components)")
         columns = {p.n_ac_columns for p in pcas}
         if (len(columns) != 1 or any(p.include_dc or not p.joint_rgb for p in pcas) or labels.ndim != 1
                 or labels.dtype != np.uint8 or (labels.size and int(labels.max()) >= len(pcas))):
             raise GscodecError("pca-spatial state is inconsistent (regions, columns or labels)")
-        stage = cls(spatial_clusters=max(1, len(pcas)))
-        stage.labels_, stage.pcas_ = labels.astype(np.int64), pcas
+        stage = cls(spatial_clusters=max(1, len(pcas)), unit_weights=gains is not None,
+                    side_dtype=pcas[0].side_dtype)
+        stage.labels_, stage.pcas_, stage.gains_ = labels.astype(np.int64), pcas, gains
         return stage
 
     def _check_fitted(self) -> None:

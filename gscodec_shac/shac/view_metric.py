@@ -107,7 +107,10 @@ def cloud_view_metric(cloud: GaussianCloud, cameras: Sequence[Camera]) -> np.nda
 
 def metric_applies(stage: str, params: dict) -> bool:
     """Whether an SH stage (rate-point ``sh_stage`` and ``sh_params``) takes a view metric: SHAC-PCA
-    over R, G and B together, without the DC (:meth:`ShacPCA.set_metric`)."""
+    over R, G and B together, without the DC (:meth:`ShacPCA.set_metric`), with one basis or one per
+    spatial region (``pca-spatial``)."""
+    if stage == "pca-spatial":
+        return True
     return stage == "pca" and bool(params.get("joint_rgb", True)) and not params.get("include_dc", False)
 
 
