@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from gscodec_shac.codec import Decoder
 from gscodec_shac.codec.container import Bitstream
+from gscodec_shac.codec.rate_points import load_rate_point
 from gscodec_shac.codec.rate_control import RateController, make_target
 from gscodec_shac.rd import parse_sweep, run_sweep, write_report
 from gscodec_shac.rd.methods import NO_SH_LADDER, template_without_sh
@@ -101,12 +103,36 @@ def test_kept_cell_names_count_share_and_pruning(row, text):
 @pytest.mark.parametrize("params, message", [
     ({"bpg": [100], "sh": "pca"}, "'sh': must be one of none"),
     ({"bpg": [100], "sh": True}, "'sh': must be one of none"),
+    ({"bpg": [100], "sh": {"spatial_clusters": 4}}, "stage"),
+    ({"bpg": [100], "sh": {"stage": "pca-spatial", "spatial_clusters": 0}}, "spatial_clusters"),
 ])
 def test_auto_sh_option_is_checked(tmp_path, params, message):
     with pytest.raises(SweepSpecError) as info:
         parse_sweep(tiny_spec(tmp_path, methods=[{"name": "a", "recipe": "auto", **params}]), source="bad.yaml",
                     base=tmp_path)
     assert message in str(info.value)
+
+
+def test_auto_with_another_sh_stage_fits_the_controller_with_it(tmp_path, small_scene):
+    from gscodec_shac.rd.methods import template_with_sh
+
+    sh = {"stage": "pca-spatial", "spatial_clusters": 2, "energy_retention": 0.9999, "side_dtype": "float16"}
+    spec = parse_sweep(tiny_spec(tmp_path, methods=[{"name": "sp", "recipe": "auto", "bpg": [100], "sh": sh}]),
+                       source="sp.yaml", base=tmp_path)
+    assert spec.methods[0].params["sh"] == sh
+    point = template_with_sh("shac_auto:template", sh)
+    assert point.sh_stage == "pca-spatial" and point.sh_params == {k: v for k, v in sh.items() if k != "stage"}
+    assert point.attributes == load_rate_point("shac_auto:template").attributes  # only the stage differs
+    cloud = small_scene.cloud
+    controller = RateController(cloud, point, views=small_scene.cameras, workers=1, importance_shares=()).fit()
+    outcome = controller.encode(make_target(cloud.num_gaussians, bpg=150))
+    data = outcome.stream.to_bytes()
+    assert Bitstream.from_bytes(data).header["sh"]["stage"] == "pca-spatial" and len(data) <= 150 * 2000 / 8
+    decoded = Decoder().decode(data)
+    assert decoded.sh_degree == 3 and decoded.num_gaussians == int(outcome.stream.header["num_gaussians"])
+    truth = cloud.ac_matrix()[controller._last_order]  # every row decoded through its own region's basis
+    error = float(np.linalg.norm(decoded.ac_matrix() - truth) / np.linalg.norm(truth))
+    assert error < 0.5
 
 
 def test_compare_setting_is_checked(tmp_path):

@@ -23,6 +23,8 @@ points of ours and run once per scene (rate point ``native``). Recipes are found
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import os
 import time
 from abc import ABC, abstractmethod
@@ -211,7 +213,7 @@ class Auto(Recipe):
     the controller calibrates on the scene's views that are not test views (fitted once per
     scene and worker process); ``encode_s`` includes that fit. ``sh: none`` runs the same
     controller without an SH stage (:func:`template_without_sh`): the row that isolates what
-    the SH stage gains.
+    the SH stage gains; ``sh: {stage: NAME, ...}`` with another stage (:func:`template_with_sh`).
     """
 
     name = "auto"
@@ -238,10 +240,20 @@ class Auto(Recipe):
         self.where.string(template, "template")
         params = {kind: list(values), "template": template, "controller_version": VERSION}
         if "sh" in raw:  # only when given, so the keys of the runs with the template's stage stay the same
-            params["sh"] = self.where.choice(raw["sh"], ("none",), "sh")
+            params["sh"] = self._check_sh(raw["sh"])
         if "recover" in raw:  # prune by importance and distil first (gscodec_shac/train/recover.py)
             params["recover"] = self._check_recover(raw["recover"])
         return params
+
+    def _check_sh(self, raw: Any) -> str | dict[str, Any]:
+        """``none`` (the template without its SH stage) or ``{stage: NAME, ...}``: the template with that SH
+        stage and those parameters instead of its own (e.g. ``pca-spatial``, docs/ablations.md)."""
+        if not isinstance(raw, dict):
+            return self.where.choice(raw, ("none",), "sh")
+        where = self.where.at("sh")
+        stage = where.choice(raw.get("stage"), tuple(STAGES.names()), "stage")
+        checked = STAGES.get(stage).check_params({k: v for k, v in raw.items() if k != "stage"}, where)
+        return {"stage": stage, **checked}
 
     def _check_recover(self, raw: Any) -> dict[str, Any]:
         from gscodec_shac.train.recover import DEFAULT_ITERATIONS
@@ -295,11 +307,18 @@ _CONTROLLERS: dict[tuple, tuple[Any, float]] = {}
 NO_SH_LADDER = (0, 5, 10)
 
 
+def template_with_sh(template: str, sh: dict[str, Any]) -> Any:
+    """The rate-control template with another SH stage (``sh``: ``{stage: NAME, ...its parameters}``)."""
+    from gscodec_shac.codec.rate_points import load_rate_point
+
+    params = {k: v for k, v in sh.items() if k != "stage"}
+    point = load_rate_point(template).with_overrides(sh_stage=sh["stage"], sh_params=params)
+    return dataclasses.replace(point, name=f"{point.name}+{sh['stage']}")
+
+
 def template_without_sh(template: str) -> Any:
     """The rate-control template with SH stage ``none``: the AC coefficients coded with the baseline's
     degree ladder, whose first QP the controller chooses as it chooses the SH features' base QP."""
-    import dataclasses
-
     from gscodec_shac.codec.rate_points import load_rate_point
 
     point = load_rate_point(template).with_overrides(sh_stage="none")
@@ -331,18 +350,19 @@ def _recovered(ctx: RunContext, recover: dict[str, Any]) -> GaussianCloud:
     return _RECOVERIES[key].cloud
 
 
-def _fitted_controller(ctx: RunContext, template: str, sh: str | None = None,
+def _fitted_controller(ctx: RunContext, template: str, sh: str | dict[str, Any] | None = None,
                        recover: dict[str, Any] | None = None) -> tuple[Any, float]:
     """One fitted rate controller per (scene file, template, SH stage, recovery, preset) in this process,
     and the seconds its fit took, a recovery included (``sh``: ``none`` for the template without its
-    SH stage; ``recover``: fitted on the pruned and recovered scene)."""
+    SH stage, a mapping for another stage (:func:`template_with_sh`); ``recover``: fitted on the pruned
+    and recovered scene)."""
     from gscodec_shac.codec.rate_control import RateController
 
-    key = (str(ctx.ply_path), template, sh, ctx.preset, ctx.threads, ctx.background,
+    key = (str(ctx.ply_path), template, json.dumps(sh, sort_keys=True), ctx.preset, ctx.threads, ctx.background,
            None if recover is None else _recovery_key(ctx, recover))
     if key not in _CONTROLLERS:
         tic = time.perf_counter()
-        point = template_without_sh(template) if sh == "none" else template
+        point = template_without_sh(template) if sh == "none" else template_with_sh(template, sh) if sh else template
         options = {"workers": ctx.threads, "background": ctx.background,
                    "codec_options": {"preset": ctx.preset} if ctx.preset else None}
         if recover is not None and "choose" in recover:
