@@ -100,37 +100,32 @@ def codec_options(text: str) -> dict[str, Any]:
     return out
 
 
-def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def add_scene_arguments(parser: argparse.ArgumentParser, judged: str) -> None:
+    """The model, the controller's cameras, the held-out views that judge ``judged`` and the size target."""
     parser.add_argument("model", help="a static model file (PLY, or any format the codec reads)")
     parser.add_argument("--cameras", required=True, help="the controller's cameras (its views and importance)")
     held_out = parser.add_mutually_exclusive_group(required=True)
-    held_out.add_argument("--judge-cameras", help="held-out cameras the moves are judged on")
+    held_out.add_argument("--judge-cameras", help=f"held-out cameras the {judged} are judged on")
     held_out.add_argument("--test-every", type=int, help="hold out every k-th of --cameras in name order (as "
-                          "`gscodec-shac rd`): the controller gets the others, the moves are judged on them")
+                          f"`gscodec-shac rd`): the controller gets the others, the {judged} are judged on them")
     parser.add_argument("--judge-every", type=int, default=1, help="every k-th held-out camera (default: all)")
     parser.add_argument("--background", default="0,0,0", help="r,g,b in [0, 1] (1,1,1 for NeRF-synthetic)")
     goal = parser.add_mutually_exclusive_group(required=True)
     goal.add_argument("--bpg", type=float, help="a size target in bits per Gaussian")
     goal.add_argument("--size", help="a size target (e.g. 600kB)")
-    parser.add_argument("--codec-options", action="append", default=[], metavar="KEY=VALUE[,KEY=VALUE]",
-                        help="code the plan again with these lossy-codec options, at its QPs (repeatable; e.g. "
-                        "preset=placebo or loop_filters=false): bytes and held-out PSNR against the plan's file")
-    parser.add_argument("--no-moves", action="store_true", help="only the plan and its --codec-options variants")
-    parser.add_argument("--out", required=True, type=Path, help="results stem: OUT.json and OUT.csv")
-    args = parser.parse_args(argv)
+
+
+def check_scene_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     if args.judge_every < 1 or (args.test_every is not None and args.test_every < 2):
         parser.error("--judge-every must be at least 1 and --test-every at least 2")
-    try:
-        option_sets = [codec_options(text) for text in args.codec_options]
-    except ValueError as exc:
-        parser.error(str(exc))
 
+
+def fitted_scene(args: argparse.Namespace) -> tuple[Any, Any, Any, list, tuple[float, ...]]:
+    """(model, the rate controller fitted on its cameras, the size target, the judging views, background)."""
     from gscodec_shac.camera import test_split
     from gscodec_shac.codec import rate_control as rc
     from gscodec_shac.io.cameras import load_cameras
     from gscodec_shac.io.models import read_model
-    from gscodec_shac.render import Renderer
 
     cloud, _ = read_model(args.model)
     background = tuple(float(v) for v in args.background.split(","))
@@ -139,11 +134,32 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         judges = load_cameras(args.judge_cameras)
     else:
         cameras, judges = test_split(cameras, args.test_every)
-    judges = judges[:: args.judge_every]
     controller = rc.RateController(cloud, views=cameras, background=background, progress=True)
     controller.fit()
     target = rc.make_target(cloud.num_gaussians, bpg=args.bpg) if args.bpg is not None else \
         rc.make_target(cloud.num_gaussians, size=args.size)
+    return cloud, controller, target, judges[:: args.judge_every], background
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_scene_arguments(parser, "moves")
+    parser.add_argument("--codec-options", action="append", default=[], metavar="KEY=VALUE[,KEY=VALUE]",
+                        help="code the plan again with these lossy-codec options, at its QPs (repeatable; e.g. "
+                        "preset=placebo or loop_filters=false): bytes and held-out PSNR against the plan's file")
+    parser.add_argument("--no-moves", action="store_true", help="only the plan and its --codec-options variants")
+    parser.add_argument("--out", required=True, type=Path, help="results stem: OUT.json and OUT.csv")
+    args = parser.parse_args(argv)
+    check_scene_arguments(parser, args)
+    try:
+        option_sets = [codec_options(text) for text in args.codec_options]
+    except ValueError as exc:
+        parser.error(str(exc))
+
+    from gscodec_shac.codec import rate_control as rc
+    from gscodec_shac.render import Renderer
+
+    cloud, controller, target, judges, background = fitted_scene(args)
     # _encode_to, not encode: the variants are predicted with the models as the target's encodes corrected them
     outcome = controller._encode_to(target)
     base = dict(outcome.plan.settings)

@@ -31,7 +31,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
 from bench_speed import write_results  # noqa: E402
-from plan_marginals import codec_options  # noqa: E402
+from plan_marginals import (add_scene_arguments, check_scene_arguments, codec_options,  # noqa: E402
+                            fitted_scene)
 
 FIELDS = ["stage", "params", "sh_offset", "sh", "bytes", "sh_state_bytes", "judges_psnr"]
 
@@ -57,17 +58,7 @@ def bd_against(anchor: Sequence[dict[str, Any]], rows: Sequence[dict[str, Any]])
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("model", help="a static model file (PLY, or any format the codec reads)")
-    parser.add_argument("--cameras", required=True, help="the controller's cameras (its views and importance)")
-    held_out = parser.add_mutually_exclusive_group(required=True)
-    held_out.add_argument("--judge-cameras", help="held-out cameras the files are judged on")
-    held_out.add_argument("--test-every", type=int, help="hold out every k-th of --cameras in name order (as "
-                          "`gscodec-shac rd`): the controller gets the others, the files are judged on them")
-    parser.add_argument("--judge-every", type=int, default=1, help="every k-th held-out camera (default: all)")
-    parser.add_argument("--background", default="0,0,0", help="r,g,b in [0, 1] (1,1,1 for NeRF-synthetic)")
-    goal = parser.add_mutually_exclusive_group(required=True)
-    goal.add_argument("--bpg", type=float, help="a size target in bits per Gaussian")
-    goal.add_argument("--size", help="a size target (e.g. 600kB)")
+    add_scene_arguments(parser, "files")
     parser.add_argument("--stage", action="append", default=[], metavar="NAME[:KEY=VALUE,...]",
                         help="an SH stage to code the plan with (repeatable), e.g. pca-spatial:spatial_clusters=4")
     parser.add_argument("--sh-offsets", default="-1.5,0,1.5",
@@ -77,8 +68,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                         help="fit every stage in the paper's metric, not the cameras' view metric")
     parser.add_argument("--out", required=True, type=Path, help="results stem: OUT.json and OUT.csv")
     args = parser.parse_args(argv)
-    if args.judge_every < 1 or (args.test_every is not None and args.test_every < 2):
-        parser.error("--judge-every must be at least 1 and --test-every at least 2")
+    check_scene_arguments(parser, args)
     try:
         variants = [stage_variant(text) for text in args.stage]
         offsets = [float(v) for v in args.sh_offsets.split(",")]
@@ -87,26 +77,12 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     if not variants or len(offsets) < 2:
         parser.error("give at least one --stage and two --sh-offsets")
 
-    from gscodec_shac.camera import test_split
     from gscodec_shac.codec import rate_control as rc
     from gscodec_shac.codec.encoder import Encoder
-    from gscodec_shac.io.cameras import load_cameras
-    from gscodec_shac.io.models import read_model
     from gscodec_shac.render import Renderer
     from gscodec_shac.shac.view_metric import metric_applies
 
-    cloud, _ = read_model(args.model)
-    background = tuple(float(v) for v in args.background.split(","))
-    cameras = load_cameras(args.cameras)
-    if args.judge_cameras:
-        judges = load_cameras(args.judge_cameras)
-    else:
-        cameras, judges = test_split(cameras, args.test_every)
-    judges = judges[:: args.judge_every]
-    controller = rc.RateController(cloud, views=cameras, background=background, progress=True)
-    controller.fit()
-    target = rc.make_target(cloud.num_gaussians, bpg=args.bpg) if args.bpg is not None else \
-        rc.make_target(cloud.num_gaussians, size=args.size)
+    cloud, controller, target, judges, background = fitted_scene(args)
     plan = controller._encode_to(target).plan
     metric = None if args.no_view_metric else controller._sh_metric()
     references = [Renderer(cloud).render(view, background=background).image for view in judges]
