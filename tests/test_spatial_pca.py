@@ -161,22 +161,16 @@ def test_unit_weight_gains_travel_in_the_state_and_need_format_2_5(small_cloud):
 
 
 def test_a_decoder_without_the_unit_weights_feature_refuses_the_stream(small_cloud, monkeypatch):
-    from gscodec_shac.codec import container
+    from gscodec_shac.codec import Bitstream, container
     from gscodec_shac.errors import BitstreamError
 
     point = parse_rate_points({"points": {"p": {"codec": "raw", "bits": 16, "sort": {"method": "morton"}}}}, "t")["p"]
     data = Encoder(point, sh_stage="pca-spatial", sh_params={"n_components": 3, "spatial_clusters": 2}) \
         .encode(small_cloud).to_bytes()
-    assert Bitstream_version(data) == (2, 5)
+    assert Bitstream.from_bytes(data).version == (2, 5)
     monkeypatch.delitem(container.FEATURES, "sh_spatial_unit_weights")
     with pytest.raises(BitstreamError, match="sh_spatial_unit_weights"):
         Decoder().decode(data)
-
-
-def Bitstream_version(data: bytes) -> tuple[int, int]:
-    import struct
-
-    return struct.unpack_from("<HH", data, 8)
 
 
 def test_a_fitted_stage_codes_other_rows_and_orders_with_their_own_regions(small_cloud):
