@@ -22,7 +22,7 @@ decode as before): each region's component j is scaled by the square root of its
 Without it, in the paper's metric, channel j of two regions carries scores of different weights
 under one quantiser and one water-filled QP, which :meth:`feature_weights` can only average: at
 the rate controller's 100 bits/G plan on the chair, k = 4 coded 3.9-4.5 dB below the global basis
-at its QPs for 17-19% fewer bytes, its curve out of the global one's reach (with the gains: 0.2-0.6
+at its QPs for 17-19% fewer bytes, its curve out of the global one's reach (with the gains: 0.2-0.8
 dB below for 3-4% more bytes; docs/ablations.md, "Spatially varying bases"). In a metric (:meth:`set_metric`, e.g. the cameras'
 view metric) SHAC-PCA's components already cost one unit each and the gains are 1. The gains
 travel in the state (float32, M_c per region).
