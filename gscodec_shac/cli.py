@@ -244,5 +244,22 @@ def _first_line(value: object) -> str:
     return lines[0] if lines else type(value).__name__
 
 
+def run() -> NoReturn:
+    """The process entry (``gscodec-shac``, ``python -m gscodec_shac``): :func:`main`, then exit with its
+    status. After SIGINT or SIGTERM the process ends at once (``os._exit``, stdout and stderr flushed)
+    instead of through the interpreter's shutdown: the interrupted work's threads (the encoder's
+    scheduler, numba's and x265's) may still be running native code, and two fresh-clone CI runs saw
+    an interrupted encode print its message and then die of SIGSEGV on the way out (docs/reliability.md,
+    "A crash after an interrupted encode"). Every output is whole or absent by then (the atomic writes
+    and the input release ran inside :func:`main`); x265's worker processes end when their pipes close."""
+    code = main()
+    if _SIGNALS_RECEIVED:
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(OSError, ValueError):
+                stream.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    run()

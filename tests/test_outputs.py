@@ -224,6 +224,30 @@ def test_an_interrupted_encode_leaves_the_old_file_and_no_temporary(tmp_path, si
             assert stderr.strip() == ("interrupted" if signum == signal.SIGINT else "terminated")
 
 
+_ENTRY = """
+import atexit, sys
+from gscodec_shac import cli
+atexit.register(print, "shut down")
+def finished():
+    cli._SIGNALS_RECEIVED.extend(int(s) for s in sys.argv[1:])
+    print("work done", end="; ")
+    return 143 if sys.argv[1:] else 0
+cli.main = finished
+cli.run()
+"""
+
+
+@pytest.mark.parametrize("signals, status, stdout", [([], 0, "work done; shut down\n"),
+                                                     ([signal.SIGTERM], 143, "work done; ")],
+                         ids=["no signal", "SIGTERM"])
+def test_after_a_signal_the_cli_exits_without_the_interpreter_shutdown(signals, status, stdout):
+    """``cli.run``: after SIGINT or SIGTERM (main's cleanup done) the process ends at once, its output
+    flushed, without the interpreter's shutdown, where an interrupted encode's native threads crashed."""
+    result = subprocess.run([sys.executable, "-c", _ENTRY, *map(str, map(int, signals))], capture_output=True,
+                            text=True, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, timeout=120)
+    assert (result.returncode, result.stdout) == (status, stdout), result.stderr
+
+
 _WRITER = """
 import sys, time
 from gscodec_shac.atomic import atomic_output
