@@ -362,7 +362,12 @@ def _fitted_controller(ctx: RunContext, template: str, sh: str | dict[str, Any] 
            None if recover is None else _recovery_key(ctx, recover))
     if key not in _CONTROLLERS:
         tic = time.perf_counter()
-        point = template_without_sh(template) if sh == "none" else template_with_sh(template, sh) if sh else template
+        if sh == "none":
+            point = template_without_sh(template)
+        elif isinstance(sh, dict):
+            point = template_with_sh(template, sh)
+        else:
+            point = template
         options = {"workers": ctx.threads, "background": ctx.background,
                    "codec_options": {"preset": ctx.preset} if ctx.preset else None}
         if recover is not None and "choose" in recover:

@@ -81,7 +81,7 @@ def fit_regions(positions: np.ndarray, k: int, seed: int = 0,
     def locate(p: np.ndarray) -> np.ndarray:
         return _nearest(standardised(p), kept).astype(np.int64)
 
-    return locate(positions), locate
+    return _nearest(x, kept).astype(np.int64), locate  # x: the fitted positions, standardised already
 
 
 def _one_region(positions: np.ndarray) -> np.ndarray:
