@@ -12,7 +12,7 @@ from gscodec_shac.codec.rate_recover import RecoveringController, _Coded
 from gscodec_shac.errors import ValidationError
 from gscodec_shac.io.ply import read_ply, write_ply
 from gscodec_shac.rd.methods import Auto, MethodError
-from gscodec_shac.train.recover import prune_and_recover
+from gscodec_shac.train.recover import DEFAULT_ITERATIONS, prune_and_recover
 
 
 @pytest.fixture(scope="module")
@@ -173,7 +173,8 @@ def test_prune_command_refuses_a_gsc_output(tmp_path, small_scene, capsys):
 
 def test_sweep_recipe_checks_its_recover_settings(tmp_path):
     recipe = Auto()
-    assert recipe.check({"bpg": [50], "recover": {"keep": 0.6}}, tmp_path)["recover"] == {"keep": 0.6, "iterations": 200}
+    assert recipe.check({"bpg": [50], "recover": {"keep": 0.6}}, tmp_path)["recover"] == \
+        {"keep": 0.6, "iterations": DEFAULT_ITERATIONS}
     assert recipe.check({"bpg": [50], "recover": {"keep": [0.6, 0.45], "iterations": 50}}, tmp_path)["recover"] == \
         {"choose": [0.6, 0.45], "iterations": 50}
     for bad, match in (({"iterations": 10}, "keep"), ({"keep": [0.6, 2]}, r"keep\[1\]"), ({"keep": 0.5, "x": 1}, "x"),
@@ -191,11 +192,12 @@ def test_encode_to_a_target_with_recover(tmp_path, small_scene, capsys):
     write_ply(ply, small_scene.cloud)
     write_inria_cameras(cameras, small_scene.cameras)
     assert main(["encode", str(ply), str(out), "--target-bpg", "60", "--cameras", str(cameras), "--recover",
-                 "--json", "-q"]) == 0
+                 "--recover-steps", "60", "--json", "-q"]) == 0
     summary = json.loads(capsys.readouterr().out)
     recovery = summary["rate_control"]["recovery"]
     assert [row["keep"] for row in recovery["sources"]] == [1.0, 0.45]  # RECOVER_SHARES
-    assert recovery["keep"] in (1.0, 0.45) and recovery["iterations"] in (0, 200)
+    assert recovery["steps"] == 60 != DEFAULT_ITERATIONS  # --recover-steps reached the recovery
+    assert recovery["keep"] in (1.0, 0.45) and recovery["iterations"] in (0, 60)
     assert 0.97 * 60 <= 8 * out.stat().st_size / 2_000 <= 60  # bits per *input* Gaussian, whichever source
 
 
@@ -248,3 +250,13 @@ def test_recover_checks_rates_option_names_a_malformed_item():
     for bad in ("lr_opacity", "lr_scales=abc"):
         with pytest.raises(SystemExit):
             recover_check.parse_rates(parser, bad)
+
+
+@pytest.mark.parametrize("args, message", [(["--recover-steps", "50"], "give --recover too"),
+                                           (["--recover", "--recover-steps", "-1"], "0 or more")])
+def test_encode_refuses_recover_steps_without_recover_or_below_zero(tmp_path, small_scene, capsys, args, message):
+    ply, out = tmp_path / "in.ply", tmp_path / "out.gsc"
+    write_ply(ply, small_scene.cloud)
+    assert main(["encode", str(ply), str(out), "--target-bpg", "60", *args]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and not out.exists()

@@ -169,10 +169,12 @@ def encode_file_to_target(
     analysis: str | None = None,
     progress: bool = False,
     recover: bool = False,
+    recover_steps: int | None = None,
 ) -> dict[str, Any]:
     """Any model file ``read_model`` reads -> ``.gsc`` at a target (:mod:`.rate_control`): a size (``"2.5MB"``), bits per Gaussian or
     PSNR against the uncompressed model on ``cameras`` (any camera file; default: orbit views).
-    ``recover``: also code the model's pruned-and-recovered versions and keep the best file (:mod:`.rate_recover`).
+    ``recover``: also code the model's pruned-and-recovered versions and keep the best file (:mod:`.rate_recover`),
+    their recovery ``recover_steps`` fine-tuning steps long (default: the recovery's).
 
     Nothing is written when the target cannot be reached (:class:`TargetUnreachableError`).
     """
@@ -191,7 +193,8 @@ def encode_file_to_target(
     if recover:
         from gscodec_shac.codec.rate_recover import RecoveringController
 
-        controller: Any = RecoveringController(cloud, template, views, controller_options=options)
+        controller: Any = RecoveringController(cloud, template, views, iterations=recover_steps,
+                                               controller_options=options)
     else:
         controller = RateController(cloud, template, views, **options)
     outcome = controller.encode(target)

@@ -106,6 +106,8 @@ class RecoveringController:
     seconds_: dict[str, float] = field(default_factory=dict, init=False)
     #: the views the sources are judged on and the model's renders of them
     judges_: list[Camera] = field(default_factory=list, init=False)
+    #: the recovery's fine-tuning steps (``iterations``, else the recovery's default)
+    steps_: int = field(default=0, init=False)
     _references: list[np.ndarray] = field(default_factory=list, init=False, repr=False)
 
     def fit(self) -> "RecoveringController":
@@ -114,6 +116,7 @@ class RecoveringController:
         iterations = DEFAULT_ITERATIONS if self.iterations is None else self.iterations
         for share in self.shares:
             check_settings(share, iterations)
+        self.steps_ = iterations
         tic = time.perf_counter()
         base = RateController(self.cloud, self.template, self.views, **self.controller_options).fit()
         self.sources_ = [Source(1.0, base)]
@@ -203,6 +206,7 @@ class RecoveringController:
         outcome, source = best.outcome, best.source
         outcome.measured_psnr = best.on_controller_views  # against the model, as a plain target reports it
         outcome.recovery = {"keep": source.share, "iterations": source.recovery.iterations if source.recovery else 0,
+                            "steps": self.steps_,
                             "judged_psnr": round(best.judged, 3), "judges": len(self.judges_), "sources": rows,
                             "seconds": {step: round(value, 2) for step, value in self.seconds_.items()}}
         return outcome

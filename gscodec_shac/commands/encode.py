@@ -71,6 +71,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "own renders (on the cameras the quality is not judged from), and keep the file that "
                         "measures best against the model: smaller files at equal quality up to about 55 bits/G, "
                         "2-4x the time of a plain target (docs/rate_control.md, 'Pruning with recovery')")
+    target.add_argument("--recover-steps", type=int, metavar="STEPS",
+                        help="with --recover: the fine-tuning steps of the recovery (default 400; fewer are faster "
+                        "and restore less; 0: prune only)")
     parser.add_argument("--prune-keep", type=float, metavar="SHARE",
                         help="keep this share of the Gaussians, in (0, 1]: those that contribute most to renders "
                         "from --cameras (else orbit views), after the rate point's opacity threshold "
@@ -126,6 +129,10 @@ def run(args: argparse.Namespace) -> int:
     from gscodec_shac.io.models import report_notes
 
     check_paths(args)
+    if args.recover_steps is not None and not args.recover:
+        raise GscodecError("--recover-steps sets the recovery of --recover: give --recover too")
+    if args.recover_steps is not None and args.recover_steps < 0:
+        raise GscodecError(f"--recover-steps must be 0 or more, got {args.recover_steps}")
     targets = (args.target_size, args.target_bpg, args.target_psnr)
     if any(t is not None for t in targets):
         return _run_to_target(args)
@@ -230,7 +237,7 @@ def _run_to_target(args: argparse.Namespace) -> int:
         template=args.rate_point or TEMPLATE, cameras=args.cameras, up=tuple(comma_floats(args.up, "--up")),
         background=tuple(comma_floats(args.background, "--background")),
         preset=args.preset, analysis=args.analysis, progress=not args.quiet and sys.stderr.isatty(),
-        recover=args.recover,
+        recover=args.recover, recover_steps=args.recover_steps,
     )
     notes = list(summary["notes"])
     control = summary["rate_control"]

@@ -37,7 +37,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--keep", type=float, required=True, metavar="SHARE",
                         help="share of the Gaussians kept, in (0, 1], e.g. 0.45")
     parser.add_argument("--recover", type=int, metavar="STEPS",
-                        help="fine-tuning steps after pruning (default 200, gscodec_shac.train.recover; 0: prune only)")
+                        help="fine-tuning steps after pruning (default 400, gscodec_shac.train.recover; 0: prune only)")
     parser.add_argument("--cameras", help="the scene's cameras (cameras.json, transforms*.json, a COLMAP model or "
                         "a capture folder); default: orbit views around the model")
     parser.add_argument("--split", choices=("all", "train"), default="all",
