@@ -70,7 +70,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="also code the model pruned to its most important 45%% and fine-tuned to its "
                         "own renders (on the cameras the quality is not judged from), and keep the file that "
                         "measures best against the model: smaller files at equal quality up to about 55 bits/G, "
-                        "2-4x the time of a plain target (docs/rate_control.md, 'Pruning with recovery')")
+                        "2-6x the time of a plain target (docs/rate_control.md, 'Pruning with recovery')")
     target.add_argument("--recover-steps", type=int, metavar="STEPS",
                         help="with --recover: the fine-tuning steps of the recovery (default 400; fewer are faster "
                         "and restore less; 0: prune only)")
