@@ -272,6 +272,19 @@ def test_bad_settings_raise(tiny_capture) -> None:
         Trainer(tiny_capture, TrainConfig(iterations=10, sh="lst", lambda_t=-1.0))
     with pytest.raises(CaptureError):
         load_capture("/nonexistent/capture")
+    with pytest.raises(TrainError, match="lr_decay_final"):
+        Trainer(tiny_capture, TrainConfig(iterations=10, lr_decay_final=0.0))
+
+
+def test_lr_decay_final_decays_every_rate_but_the_positions(tiny_capture) -> None:
+    constant = Trainer(tiny_capture, TrainConfig(iterations=100))
+    decaying = Trainer(tiny_capture, TrainConfig(iterations=100, lr_decay_final=0.01))
+    assert constant.learning_rates(0) == decaying.learning_rates(0)
+    assert constant.learning_rates(100) == constant.learning_rates(0) | {"means": constant.learning_rates(100)["means"]}
+    start, middle, end = (decaying.learning_rates(it) for it in (0, 50, 100))
+    for name in ("scales", "quats", "opacities", "sh_dc", "sh_rest"):
+        assert end[name] == pytest.approx(0.01 * start[name]) and middle[name] == pytest.approx(0.1 * start[name])
+    assert end["means"] == constant.learning_rates(100)["means"]  # the positions keep their own schedule
 
 
 # --------------------------------------------------------------------------- data and CLI

@@ -93,6 +93,9 @@ class TrainConfig:
     lr_opacity: float = 0.05
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
+    #: the factor every learning rate but the positions' decays to over the run, exponentially (1: constant,
+    #: the reference's; the recovery's fine-tune sets its own, gscodec_shac.train.recover.LEARNING_RATES)
+    lr_decay_final: float = 1.0
     # schedule (None = reference value scaled by iterations / 30000)
     sh_interval: int | None = None
     densify_from: int | None = None
@@ -123,6 +126,8 @@ class TrainConfig:
             raise TrainError(f"--sh-degree must be 0-3, got {self.sh_degree}")
         if self.sh == "lst" and self.sh_degree < 2:
             raise TrainError("--sh lst needs --sh-degree 2 or 3")
+        if not (math.isfinite(self.lr_decay_final) and 0 < self.lr_decay_final <= 1):
+            raise TrainError(f"lr_decay_final must lie in (0, 1], got {self.lr_decay_final}")
         if not (math.isfinite(self.lambda_t) and self.lambda_t >= 0):
             raise TrainError(f"--lambda-t must be a number >= 0, got {self.lambda_t}")
         if self.sh == "lst":
@@ -172,6 +177,12 @@ class TrainConfig:
     def from_dict(cls, data: dict[str, Any]) -> "TrainConfig":
         names = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in data.items() if k in names})
+
+
+def decay_factor(config: TrainConfig, iteration: int) -> float:
+    """Exponential decay from 1 to ``lr_decay_final`` over the run (1 throughout by default)."""
+    t = min(1.0, max(0.0, iteration / config.iterations))
+    return math.exp(t * math.log(config.lr_decay_final))
 
 
 def means_lr(config: TrainConfig, extent: float, iteration: int) -> float:
@@ -235,9 +246,11 @@ class Trainer:
 
     def learning_rates(self, iteration: int) -> dict[str, float]:
         c = self.config
+        d = decay_factor(c, iteration)
         rates = {
-            "means": means_lr(c, self.capture.extent, iteration), "scales": c.lr_scales, "quats": c.lr_quats,
-            "opacities": c.lr_opacity, "sh_dc": c.lr_sh_dc, "sh_rest": c.lr_sh_rest, "sh_subset": c.lr_sh_rest,
+            "means": means_lr(c, self.capture.extent, iteration), "scales": c.lr_scales * d, "quats": c.lr_quats * d,
+            "opacities": c.lr_opacity * d, "sh_dc": c.lr_sh_dc * d, "sh_rest": c.lr_sh_rest * d,
+            "sh_subset": c.lr_sh_rest * d,
         }
         return rates
 
