@@ -41,8 +41,8 @@ MAX_WIDTH = 800
 #: at 0.3x and 0.5x the reference's 0.05 and 5e-3. ``prune_and_recover(learning_rates=...)`` overrides them.
 LEARNING_RATES = {"lr_means": 4.8e-5, "lr_means_final": 4.8e-6, "lr_opacity": 0.015, "lr_scales": 2.5e-3}
 #: Fine-tuning steps. 400 since 2026-11-29 (200 before): at 45% kept, held-out views against the
-#: uncompressed model, bonsai 42.98 -> 43.40 dB and the chair 48.13 -> 49.07 dB (600 steps: 43.80 and
-#: 49.81 dB, for three times the 200 steps' time); docs/rate_control.md, "Pruning with recovery".
+#: uncompressed model, bonsai 42.98 -> 43.40 dB and the chair 48.13 -> 49.07 dB (600 steps, three times
+#: the 200 steps' fine-tuning: 43.80 and 49.81 dB); docs/rate_control.md, "400 recovery steps instead of 200".
 DEFAULT_ITERATIONS = 400
 
 

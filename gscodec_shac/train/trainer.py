@@ -94,7 +94,8 @@ class TrainConfig:
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
     #: the factor every learning rate but the positions' decays to over the run, exponentially (1: constant,
-    #: the reference's; the recovery's fine-tune sets its own, gscodec_shac.train.recover.LEARNING_RATES)
+    #: as the reference and the recovery's fine-tune train; decays measured for the recovery, not kept:
+    #: docs/rate_control.md, "400 recovery steps instead of 200")
     lr_decay_final: float = 1.0
     # schedule (None = reference value scaled by iterations / 30000)
     sh_interval: int | None = None
