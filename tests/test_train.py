@@ -274,6 +274,8 @@ def test_bad_settings_raise(tiny_capture) -> None:
         load_capture("/nonexistent/capture")
     with pytest.raises(TrainError, match="lr_decay_final"):
         Trainer(tiny_capture, TrainConfig(iterations=10, lr_decay_final=0.0))
+    with pytest.raises(TrainError, match="lr_decay_start"):
+        Trainer(tiny_capture, TrainConfig(iterations=10, lr_decay_start=1.0))
 
 
 def test_lr_decay_final_decays_every_rate_but_the_positions(tiny_capture) -> None:
@@ -285,6 +287,10 @@ def test_lr_decay_final_decays_every_rate_but_the_positions(tiny_capture) -> Non
     for name in ("scales", "quats", "opacities", "sh_dc", "sh_rest"):
         assert end[name] == pytest.approx(0.01 * start[name]) and middle[name] == pytest.approx(0.1 * start[name])
     assert end["means"] == constant.learning_rates(100)["means"]  # the positions keep their own schedule
+    late = Trainer(tiny_capture, TrainConfig(iterations=100, lr_decay_final=0.01, lr_decay_start=0.5))
+    assert late.learning_rates(50) == constant.learning_rates(50)  # no decay before half the run
+    assert late.learning_rates(75)["scales"] == pytest.approx(0.1 * start["scales"])
+    assert late.learning_rates(100)["opacities"] == pytest.approx(0.01 * start["opacities"])
 
 
 # --------------------------------------------------------------------------- data and CLI

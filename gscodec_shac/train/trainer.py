@@ -94,9 +94,11 @@ class TrainConfig:
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
     #: the factor every learning rate but the positions' decays to over the run, exponentially (1: constant,
-    #: as the reference and the recovery's fine-tune train; decays measured for the recovery, not kept:
-    #: docs/rate_control.md, "400 recovery steps instead of 200")
+    #: as the reference trains; the recovery's fine-tune decays them over its last quarter,
+    #: gscodec_shac.train.recover.LEARNING_RATES)
     lr_decay_final: float = 1.0
+    #: the share of the run before that decay starts (0: from the first step)
+    lr_decay_start: float = 0.0
     # schedule (None = reference value scaled by iterations / 30000)
     sh_interval: int | None = None
     densify_from: int | None = None
@@ -129,6 +131,8 @@ class TrainConfig:
             raise TrainError("--sh lst needs --sh-degree 2 or 3")
         if not (math.isfinite(self.lr_decay_final) and 0 < self.lr_decay_final <= 1):
             raise TrainError(f"lr_decay_final must lie in (0, 1], got {self.lr_decay_final}")
+        if not (math.isfinite(self.lr_decay_start) and 0 <= self.lr_decay_start < 1):
+            raise TrainError(f"lr_decay_start must lie in [0, 1), got {self.lr_decay_start}")
         if not (math.isfinite(self.lambda_t) and self.lambda_t >= 0):
             raise TrainError(f"--lambda-t must be a number >= 0, got {self.lambda_t}")
         if self.sh == "lst":
@@ -181,8 +185,10 @@ class TrainConfig:
 
 
 def decay_factor(config: TrainConfig, iteration: int) -> float:
-    """Exponential decay from 1 to ``lr_decay_final`` over the run (1 throughout by default)."""
+    """Exponential decay from 1 to ``lr_decay_final`` over the run after its first ``lr_decay_start``
+    share (1 throughout by default)."""
     t = min(1.0, max(0.0, iteration / config.iterations))
+    t = max(0.0, (t - config.lr_decay_start) / (1.0 - config.lr_decay_start))
     return math.exp(t * math.log(config.lr_decay_final))
 
 
