@@ -106,17 +106,21 @@ class RecoveringController:
     seconds_: dict[str, float] = field(default_factory=dict, init=False)
     #: the views the sources are judged on and the model's renders of them
     judges_: list[Camera] = field(default_factory=list, init=False)
-    #: the recovery's fine-tuning steps (``iterations``, else the recovery's default)
-    steps_: int = field(default=0, init=False)
     _references: list[np.ndarray] = field(default_factory=list, init=False, repr=False)
 
-    def fit(self) -> "RecoveringController":
-        from gscodec_shac.train.recover import DEFAULT_ITERATIONS, check_settings, prune_and_recover
+    @property
+    def steps(self) -> int:
+        """The recovery's fine-tuning steps: ``iterations``, else the recovery's default."""
+        from gscodec_shac.train.recover import DEFAULT_ITERATIONS
 
-        iterations = DEFAULT_ITERATIONS if self.iterations is None else self.iterations
+        return DEFAULT_ITERATIONS if self.iterations is None else self.iterations
+
+    def fit(self) -> "RecoveringController":
+        from gscodec_shac.train.recover import check_settings, prune_and_recover
+
+        iterations = self.steps
         for share in self.shares:
             check_settings(share, iterations)
-        self.steps_ = iterations
         tic = time.perf_counter()
         base = RateController(self.cloud, self.template, self.views, **self.controller_options).fit()
         self.sources_ = [Source(1.0, base)]
@@ -206,7 +210,7 @@ class RecoveringController:
         outcome, source = best.outcome, best.source
         outcome.measured_psnr = best.on_controller_views  # against the model, as a plain target reports it
         outcome.recovery = {"keep": source.share, "iterations": source.recovery.iterations if source.recovery else 0,
-                            "steps": self.steps_,
+                            "steps": self.steps,
                             "judged_psnr": round(best.judged, 3), "judges": len(self.judges_), "sources": rows,
                             "seconds": {step: round(value, 2) for step, value in self.seconds_.items()}}
         return outcome

@@ -47,6 +47,7 @@ from gscodec_shac.train import densify as dens
 from gscodec_shac.train.fastloss import render_loss_and_grad
 from gscodec_shac.train.losses import LAMBDA_DSSIM
 from gscodec_shac.train.model import GaussianModel
+from gscodec_shac.train.trainer import log_linear
 
 REFERENCE_ITERATIONS = 40_000
 CHECKPOINT_NAME = "checkpoint.npz"
@@ -196,12 +197,6 @@ class DynamicConfig:
     def from_dict(cls, data: dict[str, Any]) -> "DynamicConfig":
         names = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in data.items() if k in names})
-
-
-def log_linear(start: float, end: float, t: float) -> float:
-    """``exp((1 - t) log start + t log end)`` with ``t`` clipped to [0, 1]."""
-    t = min(1.0, max(0.0, t))
-    return math.exp((1.0 - t) * math.log(start) + t * math.log(end))
 
 
 def initial_model(capture: DynamicCapture, config: DynamicConfig, rng: np.random.Generator) -> GaussianModel:

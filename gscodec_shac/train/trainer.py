@@ -184,19 +184,22 @@ class TrainConfig:
         return cls(**{k: v for k, v in data.items() if k in names})
 
 
+def log_linear(start: float, end: float, t: float) -> float:
+    """``exp((1 - t) log start + t log end)`` with ``t`` clipped to [0, 1]: the schedules' exponential decay."""
+    t = min(1.0, max(0.0, t))
+    return math.exp((1.0 - t) * math.log(start) + t * math.log(end))
+
+
 def decay_factor(config: TrainConfig, iteration: int) -> float:
     """Exponential decay from 1 to ``lr_decay_final`` over the run after its first ``lr_decay_start``
     share (1 throughout by default)."""
-    t = min(1.0, max(0.0, iteration / config.iterations))
-    t = max(0.0, (t - config.lr_decay_start) / (1.0 - config.lr_decay_start))
-    return math.exp(t * math.log(config.lr_decay_final))
+    start = config.lr_decay_start
+    return log_linear(1.0, config.lr_decay_final, (iteration / config.iterations - start) / (1.0 - start))
 
 
 def means_lr(config: TrainConfig, extent: float, iteration: int) -> float:
     """Exponential decay from ``lr_means`` to ``lr_means_final`` (x extent) over the run."""
-    t = min(1.0, max(0.0, iteration / config.iterations))
-    lo, hi = math.log(config.lr_means * extent), math.log(config.lr_means_final * extent)
-    return math.exp((1.0 - t) * lo + t * hi)
+    return log_linear(config.lr_means * extent, config.lr_means_final * extent, iteration / config.iterations)
 
 
 @dataclass
