@@ -231,7 +231,9 @@ def _warn_if_fewer(stream: Bitstream, decoded: int, path: Path) -> None:
 
     from gscodec_shac.codec.header import read_header
 
-    given = read_header(stream).input_gaussians
+    from gscodec_shac.codec import tiers
+
+    given = stream.header.get("input_gaussians") if tiers.is_tiered(stream) else read_header(stream).input_gaussians
     if given is not None and decoded < given:
         warnings.warn(FewerGaussiansWarning(
             f"{path}: returns {decoded:,} Gaussians of the {given:,} compressed ({given - decoded:,} pruned by the "

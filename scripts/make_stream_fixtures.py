@@ -22,6 +22,7 @@ beside the stored streams with ``--record-encoder-change "REASON"``):
     python scripts/make_stream_fixtures.py --version 2.3
     python scripts/make_stream_fixtures.py --version 2.4
     python scripts/make_stream_fixtures.py --version 2.5
+    python scripts/make_stream_fixtures.py --version 2.6
 
 (v2.4's ``ladder_rp5_pca_spatial`` was added later, written by the code of commit 99e3bb0, the last
 before format 2.5 changed what the ``pca-spatial`` stage writes by default.)
@@ -107,8 +108,14 @@ CASES_V25: dict[str, dict] = {
                                                                             "spatial_clusters": 2,
                                                                             "side_dtype": "float16"}},
 }
+#: Container 2.6 cases: importance tiers (feature tiers; ``tiers`` adds them to the rate point), SHAC-PCA's
+#: state shared by the tiers, the second tier keeping fewer features.
+CASES_V26: dict[str, dict] = {
+    "auto_template_tiers": {"input": "input_sh3.ply", "rate_point": "shac_auto:template", "sh": None, "params": {},
+                            "tiers": {"shares": [0.5, 0.5], "qp_offsets": [-2, 8]}},
+}
 CASES = {"1.0": CASES_V1, "2.0": CASES_V2, "2.1": CASES_V21, "2.2": CASES_V22, "2.3": CASES_V23, "2.4": CASES_V24,
-         "2.5": CASES_V25}
+         "2.5": CASES_V25, "2.6": CASES_V26}
 
 
 def write_inputs() -> None:
@@ -161,6 +168,8 @@ def encode_case(case: dict, workers: int = 1) -> bytes:
         rate_point = str(FIXTURES / rate_point)
     if "dc_only_share" in case:
         rate_point = load_rate_point(rate_point).with_overrides(dc_only_share=case["dc_only_share"])
+    if "tiers" in case:
+        rate_point = load_rate_point(rate_point).with_overrides(tiers=case["tiers"])
     encoder = Encoder(rate_point, sh_stage=case["sh"], sort=case.get("sort"),
                       sh_params=case["params"] or None, workers=workers)
     stream = encoder.encode(cloud)
@@ -230,8 +239,9 @@ def main() -> None:
         (out / f"{name}.gsc").write_bytes(data)
         np.savez_compressed(out / f"{name}.npz", **decoded_arrays(data))
         header = Bitstream.from_bytes(data).header
+        codecs = header.get("codecs") or [c for tier in header.get("tiers", []) for c in tier["codecs"]]
         manifest["cases"][name] = {**case, "sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data),
-                                   "codecs": [c["version"] for c in header["codecs"]]}
+                                   "codecs": [c["version"] for c in codecs]}
         print(f"{name}: {len(data):,} bytes")
     (out / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
 

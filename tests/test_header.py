@@ -12,7 +12,7 @@ import yaml
 
 from gscodec_shac.codec import Decoder, Encoder
 from gscodec_shac.codec.container import PREAMBLE_SIZE, Bitstream
-from gscodec_shac.codec.header import read_header
+from gscodec_shac.codec.header import read_header, read_headers
 from gscodec_shac.commands.info import describe_gsc
 from gscodec_shac.errors import BitstreamError, GscodecError, MemoryLimitError
 from gscodec_shac.gsplat_compat import ShacCompression
@@ -180,8 +180,8 @@ def test_the_gsplat_drop_in_uses_the_same_validator(tmp_path, encoded):
 
 @pytest.mark.parametrize("path", sorted(FIXTURES.rglob("*.gsc")), ids=lambda p: p.stem)
 def test_every_legacy_stream_is_accepted(path):
-    view = read_header(Bitstream.read(path))
-    assert view.num_gaussians > 0 and view.peak_memory() > view.decoded_bytes()
+    for view in read_headers(Bitstream.read(path)):  # a tiered stream: each tier's
+        assert view.num_gaussians > 0 and view.peak_memory() > view.decoded_bytes()
 
 
 def _shipped_points() -> list[str]:
@@ -193,9 +193,13 @@ def _shipped_points() -> list[str]:
 @pytest.mark.parametrize("point", _shipped_points())
 def test_streams_of_every_shipped_rate_point_are_accepted(cloud, point):
     stream = Encoder(point, codec_options={"preset": "ultrafast"}).encode(cloud)
-    view = read_header(Bitstream.from_bytes(stream.to_bytes()))
-    assert view.rate_point == point and sum(view.chunk_bytes.values()) == sum(len(c.data) for c in stream.chunks)
-    assert Decoder().decode(stream).num_gaussians == view.num_gaussians
+    parsed = Bitstream.from_bytes(stream.to_bytes())
+    views = read_headers(parsed)
+    assert parsed.header["rate_point"]["name"] == point
+    shared = len(parsed.chunk("sh_state").data) if len(views) > 1 and parsed.has_chunk("sh_state") else 0
+    counted = sum(sum(view.chunk_bytes.values()) for view in views) - (len(views) - 1) * shared  # tiers share it
+    assert counted == sum(len(c.data) for c in stream.chunks)
+    assert Decoder().decode(stream).num_gaussians == sum(view.num_gaussians for view in views)
 
 
 def _numeric_paths(value, prefix=()):

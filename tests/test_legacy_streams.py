@@ -57,7 +57,9 @@ def test_legacy_stream_decodes_to_the_stored_arrays(folder, name):
     data = (folder / f"{name}.gsc").read_bytes()
     assert hashlib.sha256(data).hexdigest() == _manifest(folder)["cases"][name]["sha256"]
     cloud = Decoder(workers=2).decode(data)
-    products = PRODUCTS.get((Bitstream.from_bytes(data).header.get("sh") or {}).get("stage"), ())
+    header = Bitstream.from_bytes(data).header
+    sh = header.get("sh") or next((tier.get("sh") for tier in header.get("tiers", []) if tier.get("sh")), None)
+    products = PRODUCTS.get((sh or {}).get("stage"), ())
     with np.load(folder / f"{name}.npz") as expected:
         for key in ARRAYS:
             got, want = getattr(cloud, key), expected[key]
@@ -83,11 +85,14 @@ def test_encoding_the_fixture_inputs_gives_the_golden_bytes(folder, name):
     if rate_point.startswith("custom_points.yaml"):
         rate_point = str(FIXTURES / rate_point)
     header = Bitstream.from_bytes((folder / f"{name}.gsc").read_bytes()).header
-    installed = [get_codec(c["name"], **c["options"]).version() for c in header["codecs"]]
+    codecs = header.get("codecs") or [c for tier in header.get("tiers", []) for c in tier["codecs"]]
+    installed = [get_codec(c["name"], **c["options"]).version() for c in codecs]
     if installed != case["codecs"]:
         pytest.skip(f"codec libraries differ from the fixture's ({installed} vs {case['codecs']}): bytes may differ")
     if "dc_only_share" in case:
         rate_point = load_rate_point(rate_point).with_overrides(dc_only_share=case["dc_only_share"])
+    if "tiers" in case:
+        rate_point = load_rate_point(rate_point).with_overrides(tiers=case["tiers"])
     cloud = read_ply(FIXTURES / case["input"])
     for workers in (1, 2):
         encoder = Encoder(rate_point, sh_stage=case["sh"], sort=case.get("sort"), sh_params=case["params"] or None,

@@ -16,7 +16,7 @@ uses no optional feature (so files that 1.0 decoders read stay byte-identical), 
 the newest version any of its features needs (:data:`FEATURE_VERSIONS`: 2.0, 2.1 for a
 quantised deformation network, 2.2 for one with a bit count per matrix, 2.3 for DC-only
 Gaussians, 2.4 for rotation vectors and shared HEVC parameter sets, 2.5 for spatial SH bases with
-unit-weight features). Version 2 headers are
+unit-weight features, 2.6 for importance tiers). Version 2 headers are
 deflated (zlib; the header length and CRC are of the stored bytes) and list in
 ``header["features"]`` the sorted names of the features the stream needs (see :data:`FEATURES`).
 A decoder refuses a feature it does not know, naming it, instead of decoding the stream wrongly.
@@ -52,7 +52,7 @@ from gscodec_shac.limits import MAX_HEADER_BYTES, MAX_NESTING, json_nesting
 MAGIC = b"\x89GSC\r\n\x1a\n"
 #: The newest format this code writes and reads; it reads every older major too.
 FORMAT_MAJOR = 2
-FORMAT_MINOR = 4
+FORMAT_MINOR = 6
 #: What a version-2 stream may ask for in ``header["features"]``: name -> what it adds.
 FEATURES: dict[str, str] = {
     "positions_set": "positions coded as a Morton-sorted set; the grid order follows from them (codec/positions.py)",
@@ -70,11 +70,14 @@ FEATURES: dict[str, str] = {
                            "'hevc_parameter_sets' (codec/parameter_sets.py)",
     "sh_spatial_unit_weights": "the pca-spatial SH stage's features scaled per region by the gains in its state "
                                "(shac/spatial_pca.py)",
+    "tiers": "the Gaussians in importance tiers, each coded with its own grid and QPs: header 'tiers' holds their "
+             "headers, chunk 't<k>.<name>' their chunks (codec/tiers.py)",
 }
 #: The version a stream needing the feature is written as (2.0 unless listed).
 FEATURE_VERSIONS: dict[str, tuple[int, int]] = {"deformation_quantised": (2, 1), "deformation_mixed_bits": (2, 2),
                                                  "sh_dc_only": (2, 3), "rotation_vector": (2, 4),
-                                                 "hevc_parameter_sets": (2, 4), "sh_spatial_unit_weights": (2, 5)}
+                                                 "hevc_parameter_sets": (2, 4), "sh_spatial_unit_weights": (2, 5),
+                                                 "tiers": (2, 6)}
 _PREAMBLE = struct.Struct("<8sHHII")
 PREAMBLE_SIZE = _PREAMBLE.size  # 20
 _MAX_CHUNKS = 4096

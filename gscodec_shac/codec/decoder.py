@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from gscodec_shac import sh_index
-from gscodec_shac.codec import parameter_sets
+from gscodec_shac.codec import parameter_sets, tiers
 from gscodec_shac.codec import quantize as qz
 from gscodec_shac.codec.attributes import ATTRIBUTES, transforms
 from gscodec_shac.codec.container import Bitstream, Chunk
@@ -53,11 +53,22 @@ class Decoder:
 
     def decode(self, data: bytes | Bitstream) -> GaussianCloud:
         stream = data if isinstance(data, Bitstream) else Bitstream.from_bytes(data)
+        if tiers.is_tiered(stream):  # importance tiers (codec/tiers.py): each a stream, decoded in turn
+            parts = tiers.split(stream)
+            views = [read_header(part) for part in parts]
+            for view in views:
+                self.check_memory(view)
+            return GaussianCloud.concat([self._checked_decode(part, view, shared_state=True)
+                                         for part, view in zip(parts, views)])
         view = read_header(stream)
         self.check_memory(view)
+        return self._checked_decode(stream, view)
+
+    def _checked_decode(self, stream: Bitstream, view: StreamHeader, shared_state: bool = False) -> GaussianCloud:
+        """:meth:`_decode`, anything wrong raised as one :class:`BitstreamError`."""
         try:
             with np.errstate(all="ignore"):  # overflow shows up as non-finite values, refused below
-                return self._decode(stream, view)
+                return self._decode(stream, view, shared_state)
         except (BitstreamError, CodecUnavailableError):
             raise
         except GscodecError as exc:
@@ -75,11 +86,14 @@ class Decoder:
                 f"(physical memory, cgroup and address-space limits, ${MEMORY_ENV})"
             )
 
-    def _decode(self, stream: Bitstream, view: StreamHeader) -> GaussianCloud:
+    def _decode(self, stream: Bitstream, view: StreamHeader, shared_state: bool = False) -> GaussianCloud:
         with ThreadPoolExecutor(self.workers) as pool:
-            return self._decode_in(pool, stream, view)
+            return self._decode_in(pool, stream, view, shared_state)
 
-    def _decode_in(self, pool: ThreadPoolExecutor, stream: Bitstream, view: StreamHeader) -> GaussianCloud:
+    def _decode_in(self, pool: ThreadPoolExecutor, stream: Bitstream, view: StreamHeader,
+                   shared_state: bool = False) -> GaussianCloud:
+        """The cloud of a checked stream; ``shared_state``: a tier's, whose SH stage state may hold more
+        features than the tier codes (:mod:`.tiers`)."""
         n, degree, shape = view.num_gaussians, view.sh_degree, view.grid_shape
         ycbcr = view.color == "ycbcr"
         # Set-coded positions (LZMA and numpy, then their inverse transform: one thread) start first: beside the
@@ -91,7 +105,7 @@ class Decoder:
         mask = None
         if view.padding == "mask":
             mask = unpack_mask(inflate(stream.chunk("grid_mask"), view.zlib_sizes["grid_mask"]), n, view.cells)
-        stage = read_stage(stream, view) if view.sh is not None else None
+        stage = read_stage(stream, view, shared_state) if view.sh is not None else None
         dc_only = read_dc_only(stream, view)  # Gaussians coded without AC coefficients (codec/sh_degree.py)
 
         # The occupied cells, computed once, when the first decoded picture needs them: a header

@@ -36,6 +36,7 @@ from gscodec_shac.camera import Camera
 from gscodec_shac.codec import quantize as qz
 from gscodec_shac.codec import parameter_sets
 from gscodec_shac.codec import sh_degree as degrees
+from gscodec_shac.codec import tiers
 from gscodec_shac.codec.allocation import waterfill_qps
 from gscodec_shac.codec.attributes import (ATTRIBUTES, ROTATION_VECTOR_FEATURE, SH_FEATURES_TRANSFORM,
                                           coded_attributes)
@@ -221,6 +222,9 @@ class Encoder:
         self._dc_only: np.ndarray | None = None
         self._dc_only_shape: tuple[int, int] = (0, 0)
         self._analysis = "preset"  # x265's analysis for lossy hevc attributes without their own (set per encode)
+        #: what tells this encoder's cached placement and features apart from another's of the same settings
+        #: (an importance tier's encoder: its tier, :meth:`_encode_tiers`)
+        self._tag = ""
 
     # ---------------------------------------------------------------- main
     def grid_order(self, cloud: GaussianCloud) -> GridOrder:
@@ -245,13 +249,15 @@ class Encoder:
         n_input, sh_degree = cloud.num_gaussians, cloud.sh_degree
         if self.stage_features is not None and len(self.stage_features) != n_input:
             raise ValueError(f"stage_features has {len(self.stage_features)} rows for a cloud of {n_input:,} Gaussians")
+        if rp.tiers is not None:
+            return self._encode_tiers(cloud)
         if release_input:
             cloud = cloud.take()
         self._codecs, self._jobs, self.timings_ = {}, [], {}
         self._analysis = scene_analysis(n_input)
         # With a shared cache (the rate controller's trials), the placement, the SH features and
         # the position set of equal pruning and sorting settings are computed once.
-        self._work_key = _work_key(rp) if self._chunk_cache is not None and grid is None else None
+        self._work_key = _work_key(rp) + self._tag if self._chunk_cache is not None and grid is None else None
         with self._timed("sort"):
             kept, grid, cells, grid_cloud = self._cached("grid", lambda: self._placement(cloud, grid))
             self.order_ = kept[grid.order[cells]]
@@ -351,6 +357,57 @@ class Encoder:
             "rate_point": rp.to_json(),
         }
         return stream
+
+    def _encode_tiers(self, cloud: GaussianCloud) -> Bitstream:
+        """A tiered stream (:mod:`.tiers`): the kept Gaussians split by importance, each tier coded by
+        an encoder of its own at the tier's rate point, one SH stage fitted on all of them."""
+        rp = self.rate_point
+        assert rp.tiers is not None
+        self.timings_ = {}
+        with self._timed("prune"):
+            kept = self.kept_rows(cloud)
+            importance = self._importance(cloud)
+        stage, features = self._tier_stage(cloud, kept)
+        streams, orders = [], []
+        for index, rows in enumerate(tiers.tier_rows(importance, kept, rp.tiers.shares)):
+            encoder = Encoder(rp.tier_point(index), sh_stage=stage, fit_stage=False, progress=self.progress,
+                              workers=self.workers, chunk_cache=self._chunk_cache, importance=importance[rows],
+                              stage_features=None if features is None else features[rows])
+            encoder._tag = json.dumps([self._tag, rp.prune_json(), rp.tiers.to_json(), index])
+            streams.append(encoder.encode(cloud.select(rows)))
+            orders.append(rows[encoder.order_])
+            for step, seconds in encoder.timings_.items():
+                self.timings_[step] = self.timings_.get(step, 0.0) + seconds
+        self.order_ = np.concatenate(orders)
+        return tiers.join(streams, {
+            "producer": f"gscodec-shac {gscodec_shac.__version__}",
+            "num_gaussians": int(self.order_.size),
+            "input_gaussians": cloud.num_gaussians,
+            "sh_degree": cloud.sh_degree,
+            "prune": {**rp.prune_json(), "pruned": int(cloud.num_gaussians - kept.size)},
+            "rate_point": rp.to_json(),
+        })
+
+    def _tier_stage(self, cloud: GaussianCloud, kept: np.ndarray) -> tuple[ShStage | None, np.ndarray | None]:
+        """The SH stage the tiers share and its features of every input row (None where the caller's
+        stage has none: the tiers then transform their own rows), fitted here on the ``kept`` rows
+        when the encoder fits its stage."""
+        if cloud.sh_degree == 0:
+            return None, None
+        if not (self.fit_stage or self._stage_instance is None):
+            return self._stage_instance, self.stage_features
+        stage = self._make_stage(cloud.sh_degree)
+        assert stage is not None
+        ac = np.asarray(cloud.ac_matrix()[kept])
+        if stage.uses_dc:
+            ac = np.concatenate([cloud.sh_dc[kept], ac], axis=1)
+        if stage.uses_positions:
+            stage.set_positions(cloud.means[kept])
+        with self._timed("sh_stage"):
+            fitted = np.asarray(stage.fit_transform(ac))
+        features = np.zeros((cloud.num_gaussians, fitted.shape[1]), dtype=fitted.dtype)
+        features[kept] = fitted
+        return stage, features
 
     def _placement(self, cloud: GaussianCloud, grid: GridOrder | None) -> tuple:
         """Prune and place on the grid: (kept rows, grid order, occupied cells, the cloud in grid order
@@ -484,7 +541,7 @@ class Encoder:
         quantizer = qz.Quantizer.fit(values, spec.bits, rows)
         stream.require("positions_set")
         job = _Job("positions", {"attribute": "positions", "encoding": "morton_set", "bits": spec.bits})
-        job.key = None if self._work_key is None else position_set_cache_key(self.rate_point, spec.bits)
+        job.key = None if self._work_key is None else position_set_cache_key(self.rate_point, spec.bits) + (self._tag,)
         if job.key is not None and job.key in self._chunk_cache:  # type: ignore[operator]
             job.data = self._chunk_cache[job.key]  # type: ignore[index]
         else:

@@ -221,7 +221,10 @@ class StreamHeader:
 
 
 def read_header(stream: Bitstream) -> StreamHeader:
-    """Check ``stream``'s header completely against itself and its chunks; the checked view."""
+    """Check ``stream``'s header completely against itself and its chunks; the checked view. A tiered
+    stream (:mod:`.tiers`) has one view per tier: :func:`read_headers`."""
+    if "tiers" in stream.features:
+        raise BitstreamError("a tiered .gsc stream has one header per tier: read them with read_headers")
     header = stream.header
     n = HEADER.integer(header.get("num_gaussians"), "num_gaussians", 1, MAX_GAUSSIANS)
     degree = HEADER.integer(header.get("sh_degree"), "sh_degree", 0, sh_index.MAX_SH_DEGREE)
@@ -306,8 +309,19 @@ def read_dc_only(stream: Bitstream, view: StreamHeader) -> np.ndarray | None:
     return read_flags(inflate(stream.chunk(CHUNK), view.zlib_sizes[CHUNK]), view.num_gaussians, view.sh.dc_only)
 
 
-def read_stage(stream: Bitstream, view: StreamHeader) -> ShStage:
-    """The SH stage rebuilt from ``sh_state``, checked against the header on one row."""
+def read_headers(stream: Bitstream) -> list[StreamHeader]:
+    """The checked views of ``stream``: its own, or one per tier of a tiered stream (:mod:`.tiers`)."""
+    from gscodec_shac.codec import tiers
+
+    if tiers.is_tiered(stream):
+        return [read_header(part) for part in tiers.split(stream)]
+    return [read_header(stream)]
+
+
+def read_stage(stream: Bitstream, view: StreamHeader, shared: bool = False) -> ShStage:
+    """The SH stage rebuilt from ``sh_state``, checked against the header on one row. ``shared``: the
+    state of an importance tier (:mod:`.tiers`), which may hold more features than the tier codes: the
+    stage then keeps the first of them."""
     sh = view.sh
     if sh is None:
         raise BitstreamError("corrupt .gsc file: the stream has no SH stage")
@@ -322,6 +336,8 @@ def read_stage(stream: Bitstream, view: StreamHeader) -> ShStage:
                              f"the header says {sh.stage!r}")
     try:
         stage = stage_from_state(state)
+        if shared and 0 < sh.features < getattr(stage, "n_features", 0):
+            stage.keep_features(sh.features)
         probe = np.asarray(stage.inverse_transform(np.zeros((1, sh.features), dtype=np.float32)))
     except GscodecError as exc:
         raise BitstreamError(f"corrupt .gsc file: chunk 'sh_state': {exc}") from None

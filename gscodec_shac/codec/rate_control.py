@@ -103,8 +103,9 @@ TEMPLATE = "shac_auto:template"
 #: 19 codes the rotation as a rotation vector (the template's ``rotation: {form: vector}``, format 2.4) and
 #: counts the file's HEVC parameter-set table (:mod:`.parameter_sets`) with its header; its PSNR search
 #: ignores a bigger encode below the target as a bracket and lets the slope reach 4 (:data:`PSNR_SLOPES`);
-#: 20 lets a target take up to 8 encodes (:data:`MAX_ENCODES`, 6 before).
-VERSION = 20
+#: 20 lets a target take up to 8 encodes (:data:`MAX_ENCODES`, 6 before); 21 codes the plans in the template's
+#: importance tiers (:mod:`.tiers`, format 2.6), its models and probes staying those of one grid.
+VERSION = 21
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
 #: QPs at which the probe is encoded; the models interpolate between them (and extrapolate).
@@ -318,7 +319,10 @@ class RateController:
         if cloud.num_gaussians < 2:
             raise ValidationError("rate control needs at least 2 Gaussians")
         self.cloud = cloud
-        self.template = point
+        #: the template's importance tiers (:mod:`.tiers`; version 21): the models and probes are of one
+        #: grid; the real encodes split the plan's Gaussians into the tiers
+        self.tiers = point.tiers
+        self.template = dataclasses.replace(point, tiers=None)
         self.views = list(views) if views else orbit_views(cloud.means, CALIBRATION_VIEWS, CALIBRATION_WIDTH, up=up)
         self.views = _calibration_views(self.views)
         # importance from the other cameras, so the pruning error is measured on views it was not ranked on
@@ -326,7 +330,7 @@ class RateController:
         self.importance_shares = tuple(importance_shares)
         self.importance_views = importance_views(
             cloud, [v for v in views if v.name not in judged] or views if views else None, up=up) \
-            if self.importance_shares else []
+            if self.importance_shares or self.tiers is not None else []
         self.importance_: np.ndarray | None = None
         #: the caller's cameras: SHAC-PCA is fitted in their view metric (version 18, :meth:`_sh_metric`);
         #: None without cameras (orbit views are the controller's guess, not where the scene is seen from)
@@ -458,7 +462,7 @@ class RateController:
             keep = opacity >= threshold
             if 0.2 <= np.count_nonzero(keep) / n < 1.0:
                 out.append((_prune(min_opacity=threshold), keep))
-        if self.importance_shares:
+        if self.importance_shares or self.tiers is not None:  # the tiers split by importance too
             tic = time.perf_counter()
             self.importance_ = gaussian_importance(self.cloud, self.importance_views, renderer=renderer,
                                                    progress=self.progress)
@@ -1063,7 +1067,8 @@ class RateController:
 
     def _encode(self, plan: Plan, target: Target) -> Bitstream:
         """One real encode of ``plan``; the header records the target (the settings are in its rate point)."""
-        encoder = Encoder(plan.rate_point, sh_stage=self.stage_, fit_stage=False, workers=self.workers,
+        point = plan.rate_point if self.tiers is None else dataclasses.replace(plan.rate_point, tiers=self.tiers)
+        encoder = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers,
                           progress=self.progress, chunk_cache=self._cache, importance=self.importance_,
                           stage_features=self._stage_features)
         stream = encoder.encode(self.cloud)

@@ -80,7 +80,8 @@ SORT_FEATURES = ("xyz", "scale", "opacity", "dc", "rotation")
 QP_RANGE = (0, 51)
 
 _FILE_KEYS = {"description", "source", "defaults", "points"}
-_POINT_KEYS = {"description", "codec", "codec_options", "bits", "color", "qp", "attributes", "sh", "sort", "prune"}
+_POINT_KEYS = {"description", "codec", "codec_options", "bits", "color", "qp", "attributes", "sh", "sort", "prune",
+               "tiers"}
 _ATTRIBUTE_KEYS = {"codec", "codec_options", "bits", "qp", "layout", "allocation", "form"}
 
 #: How an SH attribute's features share out QPs: ``degree`` (the QP ladder by SH degree) or
@@ -88,6 +89,9 @@ _ATTRIBUTE_KEYS = {"codec", "codec_options", "bits", "qp", "layout", "allocation
 ALLOCATIONS = ("degree", "waterfill")
 _SORT_KEYS = {"method", "policy", "multiple", "seed", "weights", "normalize", "schedule"}
 _PRUNE_KEYS = {"min_opacity", "keep_share"}
+_TIER_KEYS = {"shares", "qp_offsets"}
+#: At most this many importance tiers per rate point (:class:`TierSpec`).
+MAX_TIERS = 8
 #: What a Gaussian's AC energy is weighted by when choosing the DC-only ones (:mod:`.sh_degree`).
 DC_ONLY_WEIGHTS = ("alpha", "render")
 _DEFAULT_WEIGHTS = {"xyz": 1.0, "scale": 1.0, "opacity": 1.0, "dc": 1.0, "rotation": 0.0}
@@ -142,6 +146,19 @@ class SortSpec:
 
 
 @dataclass(frozen=True)
+class TierSpec:
+    """Importance tiers (:mod:`gscodec_shac.codec.tiers`): the kept Gaussians split by render-based
+    importance, most important first, ``shares`` of them per tier; each tier is coded as a stream of
+    its own with every lossy QP (the SH features' base QP too) moved by its ``qp_offsets`` entry."""
+
+    shares: tuple[float, ...]
+    qp_offsets: tuple[int, ...]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"shares": list(self.shares), "qp_offsets": list(self.qp_offsets)}
+
+
+@dataclass(frozen=True)
 class RatePoint:
     """A validated rate point (see module docstring)."""
 
@@ -158,6 +175,8 @@ class RatePoint:
     dc_only_share: float = 0.0
     dc_only_weight: str = "alpha"
     dc_only_energy: float = 0.0
+    #: Importance tiers, each coded as its own stream with its own QPs (None: one stream).
+    tiers: TierSpec | None = None
 
     @property
     def dc_only(self) -> bool:
@@ -201,9 +220,10 @@ class RatePoint:
         dc_only_share: float | None = None,
         dc_only_energy: float | None = None,
         dc_only_weight: str | None = None,
+        tiers: Mapping[str, Any] | None = None,
     ) -> "RatePoint":
-        """A copy with the SH stage, sorting, lossy-codec options, importance pruning or DC-only settings replaced
-        (CLI overrides).
+        """A copy with the SH stage, sorting, lossy-codec options, importance pruning, DC-only settings or
+        importance tiers replaced (CLI overrides).
 
         ``sh_params`` replace the point's stage parameters when the stage changes
         and are merged into them otherwise. ``codec_options`` are merged into the
@@ -249,7 +269,19 @@ class RatePoint:
             if dc_only_weight not in DC_ONLY_WEIGHTS:
                 raise RatePointError(f"unknown DC-only weight {dc_only_weight!r}; known: {', '.join(DC_ONLY_WEIGHTS)}")
             point = dataclasses.replace(point, dc_only_weight=dc_only_weight)
+        if tiers is not None:  # ``{shares: [...], qp_offsets: [...]}``, as in a rate-point file
+            point = dataclasses.replace(point, tiers=_tiers(Where(point.name, RatePointError), dict(tiers)))
         return point
+
+    def tier_point(self, index: int) -> "RatePoint":
+        """The rate point of tier ``index``: every lossy QP moved by its offset (clamped to 0-51), no
+        pruning (the tiers split Gaussians already pruned) and no tiers."""
+        assert self.tiers is not None
+        offset = self.tiers.qp_offsets[index]
+        attributes = {name: spec if spec.qp is None else dataclasses.replace(spec, qp=_offset_qp(spec.qp, offset))
+                      for name, spec in self.attributes.items()}
+        return dataclasses.replace(self, attributes=attributes, tiers=None, keep_share=1.0, min_opacity=0.0,
+                                   name=f"{self.name}/tier{index}")
 
     def sh_json(self) -> dict[str, Any]:
         """The SH settings as recorded (the DC-only share only when it is used, so streams without it
@@ -273,6 +305,7 @@ class RatePoint:
             "sort": self.sort.to_json(),
             "prune": self.prune_json(),
             "attributes": {name: spec.to_json() for name, spec in self.attributes.items()},
+            **({"tiers": self.tiers.to_json()} if self.tiers is not None else {}),
         }
 
 
@@ -451,6 +484,7 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
     if not _is_share(keep_share):
         raise where.error("prune.keep_share", f"must be a number in (0, 1], got {keep_share!r}")
 
+    tiers = _tiers(where, raw.get("tiers"))
     description = raw.get("description", "")
     if not isinstance(description, str):
         raise where.error("description", "must be a string")
@@ -467,7 +501,34 @@ def _build_point(raw: dict, source: str, full_name: str, point: str | None = Non
         dc_only_share=float(dc_only_share),
         dc_only_weight=dc_only_weight,
         dc_only_energy=float(dc_only_energy),
+        tiers=tiers,
     )
+
+
+def _tiers(where: Where, value: Any) -> TierSpec | None:
+    """``tiers: {shares: [...], qp_offsets: [...]}``: 2 to :data:`MAX_TIERS` tiers, shares > 0 adding up to 1."""
+    if value is None:
+        return None
+    raw = where.mapping(value, "tiers")
+    where.only(raw, _TIER_KEYS, "tiers")
+    shares, offsets = raw.get("shares"), raw.get("qp_offsets")
+    if not isinstance(shares, list) or not 2 <= len(shares) <= MAX_TIERS or not all(_is_share(v) for v in shares):
+        raise where.error("tiers.shares", f"must be a list of 2 to {MAX_TIERS} numbers in (0, 1], got {shares!r}")
+    if abs(sum(shares) - 1.0) > 1e-6:
+        raise where.error("tiers.shares", f"must add up to 1, got {sum(shares):g}")
+    if not isinstance(offsets, list) or len(offsets) != len(shares) or not all(
+            isinstance(v, int) and not isinstance(v, bool) and -QP_RANGE[1] <= v <= QP_RANGE[1] for v in offsets):
+        raise where.error("tiers.qp_offsets", f"must be a list of {len(shares)} integers in "
+                          f"[-{QP_RANGE[1]}, {QP_RANGE[1]}] (one per share), got {offsets!r}")
+    return TierSpec(tuple(float(v) for v in shares), tuple(int(v) for v in offsets))
+
+
+def _offset_qp(qp: int | float | tuple, offset: int) -> int | float | tuple:
+    """A QP (a fractional water-filling base, or a ladder) moved by ``offset``, within 0-51."""
+    if isinstance(qp, tuple):
+        return tuple(_offset_qp(q, offset) for q in qp)
+    moved = min(max(qp + offset, QP_RANGE[0]), QP_RANGE[1])
+    return float(moved) if isinstance(qp, float) else int(moved)
 
 
 def _is_share(value: Any) -> bool:

@@ -146,7 +146,11 @@ def describe_gsc(stream: Any, path: str) -> dict[str, Any]:
     from gscodec_shac.codec.header import describe, read_header
     from gscodec_shac.errors import BitstreamError
 
+    from gscodec_shac.codec import tiers
+
     try:
+        if tiers.is_tiered(stream):
+            return {"file": str(path), **tiers.describe(stream)}
         view = read_header(stream)
     except BitstreamError as exc:
         raise BitstreamError(f"{path}: {exc}") from None
@@ -164,6 +168,10 @@ def format_gsc_summary(summary: dict[str, Any]) -> str:
         + (f" ({summary['sh_features']} features)" if summary["sh_features"] else "")
         + (f", {summary['sh_dc_only']:,} DC-only" if summary.get("sh_dc_only") is not None else ""),
         f"grid              {summary['grid']}, sort {summary['sort']}, padding {summary['padding']}, colour {summary['color']}",
+        *([f"tiers             {len(summary['tiers'])} by importance: "
+           + ", ".join(f"{t['num_gaussians']:,} Gaussians at QP offset {t['qp_offset']:+d}"
+                       if isinstance(t["qp_offset"], int) else f"{t['num_gaussians']:,} Gaussians"
+                       for t in summary["tiers"])] if summary.get("tiers") else []),
         f"rate point        {summary['rate_point']}" + _target(summary.get("target")),
         f"bits/Gaussian     {summary['bits_per_gaussian']:.3f} bits per {_per(summary)} Gaussian",
         f"attribute                 bytes   share  bits/{summary.get('bits_per_gaussian_of', 'input')} G",

@@ -1,0 +1,160 @@
+"""Importance tiers (codec/tiers.py, format 2.6): the most important Gaussians coded finer, in one file."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from gscodec_shac.cli import main
+from gscodec_shac.codec import Decoder, Encoder, load_rate_point
+from gscodec_shac.codec import tiers
+from gscodec_shac.codec.container import Bitstream, Chunk
+from gscodec_shac.codec.importance import gaussian_importance, importance_views
+from gscodec_shac.codec.rate_points import TierSpec, parse_rate_points
+from gscodec_shac.errors import BitstreamError, RatePointError
+from gscodec_shac.io.ply import write_ply
+
+TIERS = {"shares": [0.5, 0.5], "qp_offsets": [-2, 10]}
+
+
+@pytest.fixture(scope="module")
+def tiered(small_cloud):
+    """(importance, encoder, stream) of the template with two tiers, the second 12 QPs coarser."""
+    importance = gaussian_importance(small_cloud, importance_views(small_cloud, None))
+    encoder = Encoder(load_rate_point("shac_auto:template").with_overrides(tiers=TIERS), importance=importance)
+    return importance, encoder, encoder.encode(small_cloud)
+
+
+def _point(extra: dict) -> dict:
+    return {"points": {"p": {"qp": {"opacity": 20, "rotation": 20, "scale": 20, "sh_dc": 20, "sh_ac": 20}, **extra}}}
+
+
+def test_a_rate_point_reads_its_tiers_and_each_tier_moves_every_lossy_qp():
+    point = parse_rate_points(_point({"tiers": {"shares": [0.3, 0.7], "qp_offsets": [-25, 40]}}), "t.yaml")["p"]
+    assert point.tiers == TierSpec((0.3, 0.7), (-25, 40))
+    assert point.to_json()["tiers"] == {"shares": [0.3, 0.7], "qp_offsets": [-25, 40]}
+    first, second = point.tier_point(0), point.tier_point(1)
+    assert first.attributes["opacity"].qp == 0 and second.attributes["opacity"].qp == 51  # clamped
+    assert first.attributes["positions"] == point.attributes["positions"]  # lossless: untouched
+    assert second.tiers is None and second.keep_share == 1.0 and second.min_opacity == 0.0
+    assert "tiers" not in parse_rate_points(_point({}), "t.yaml")["p"].to_json()  # other streams keep their bytes
+
+
+@pytest.mark.parametrize("value, problem", [
+    ({"shares": [1.0], "qp_offsets": [0]}, "2 to 8"),
+    ({"shares": [0.5, 0.4], "qp_offsets": [0, 1]}, "add up to 1"),
+    ({"shares": [0.5, 0.5], "qp_offsets": [0]}, "one per share"),
+    ({"shares": [0.5, 0.5], "qp_offsets": [0, 60]}, "integers in"),
+    ({"shares": [0.5, 0.5], "qp_offsets": [0, True]}, "integers in"),
+    ({"shares": [0.5, 0.5], "qp_offsets": [0, 1], "share": 1}, "share"),
+    ({"shares": [0, 1.0], "qp_offsets": [0, 1]}, "numbers in (0, 1]"),
+])
+def test_bad_tiers_are_one_clear_error(value, problem):
+    with pytest.raises(RatePointError, match="tiers") as info:
+        parse_rate_points(_point({"tiers": value}), "t.yaml")
+    assert problem in str(info.value)
+
+
+def test_tier_rows_split_the_kept_rows_by_descending_importance():
+    importance = np.array([5.0, 1.0, 9.0, 3.0, 7.0, 0.0])
+    kept = np.array([0, 2, 3, 4, 5])  # row 1 was pruned
+    first, second = tiers.tier_rows(importance, kept, (0.4, 0.6))
+    assert first.tolist() == [2, 4] and second.tolist() == [0, 3, 5]
+    assert [g.tolist() for g in tiers.tier_rows(importance, kept[:1], (0.5, 0.5))] == [[0]]  # no empty tier
+
+
+def test_a_tiered_stream_round_trips_its_gaussians_with_the_important_ones_finer(tiered, small_cloud):
+    importance, encoder, stream = tiered
+    data = stream.to_bytes()
+    assert Bitstream.from_bytes(data).version == (2, 6) and tiers.FEATURE in stream.features
+    decoded = Decoder().decode(data)
+    order = encoder.order_
+    assert decoded.num_gaussians == small_cloud.num_gaussians and sorted(order) == list(range(small_cloud.num_gaussians))
+    half = small_cloud.num_gaussians // 2
+    assert importance[order[:half]].min() >= importance[order[half:]].max()  # the first tier: the most important
+    source = small_cloud.select(order)
+    error = np.abs(decoded.sh_dc - source.sh_dc).mean(axis=1)
+    assert error[:half].mean() < 0.5 * error[half:].mean()
+    assert np.abs(decoded.means - source.means).max() < 0.05 * np.ptp(source.means)
+    features = [tier["sh"]["features"] for tier in stream.header["tiers"]]
+    assert features[0] > features[1]  # the coarser tier dropped features and reads the shared state's first ones
+    assert sum(chunk.name == "sh_state" for chunk in stream.chunks) == 1
+
+
+def _corrupted(stream: Bitstream, change) -> bytes:
+    copy = Bitstream(dict(stream.header), list(stream.chunks), stream.version, set(stream.features))
+    change(copy)
+    return copy.to_bytes()
+
+
+def _rename_first(copy: Bitstream) -> None:
+    first = copy.chunks[0]
+    copy.chunks[0] = Chunk("t7.positions", first.data, first.meta)
+
+
+def _miscount(copy: Bitstream) -> None:
+    copy.header["num_gaussians"] += 1
+
+
+def _drop_shared_state(copy: Bitstream) -> None:
+    copy.chunks = [c for c in copy.chunks if c.name != "sh_state"]
+
+
+def _tier_claims_tiers(copy: Bitstream) -> None:
+    copy.header["tiers"] = [{**copy.header["tiers"][0], "features": ["tiers"]}, *copy.header["tiers"][1:]]
+
+
+def _no_tier_list(copy: Bitstream) -> None:
+    copy.header["tiers"] = {"oops": 1}
+
+
+@pytest.mark.parametrize("change, message", [
+    (_rename_first, "belongs to no tier"),
+    (_miscount, "the tiers hold"),
+    (_drop_shared_state, "sh_state"),
+    (_tier_claims_tiers, "features"),
+    (_no_tier_list, "tier headers"),
+])
+def test_a_corrupt_tiered_stream_is_one_clear_error(tiered, change, message):
+    with pytest.raises(BitstreamError, match="corrupt .gsc file") as info:
+        Decoder().decode(_corrupted(tiered[2], change))
+    assert message in str(info.value)
+
+
+def test_a_truncated_tiered_file_is_refused(tiered):
+    data = tiered[2].to_bytes()
+    with pytest.raises(BitstreamError, match="truncated"):
+        Decoder().decode(data[: len(data) - 100])
+
+
+def test_encode_info_and_decode_of_a_tiered_file(tmp_path, small_cloud, capsys):
+    ply, gsc, out = tmp_path / "in.ply", tmp_path / "tiered.gsc", tmp_path / "out.ply"
+    write_ply(ply, small_cloud)
+    point = tmp_path / "tiered.yaml"
+    point.write_text("defaults: {codec: hevc, bits: 12, attributes: {positions: {layout: set, bits: 14}}}\n"
+                     "points:\n  p:\n    qp: {opacity: 20, rotation: 20, scale: 20, sh_dc: 10, sh_ac: 25}\n"
+                     "    tiers: {shares: [0.25, 0.75], qp_offsets: [-4, 6]}\n")
+    assert main(["encode", str(ply), str(gsc), "--rate-point", str(point)]) == 0
+    capsys.readouterr()
+    assert main(["info", str(gsc)]) == 0
+    text = capsys.readouterr().out
+    assert "format 2.6" in text and "tiers             2 by importance" in text and "QP offset +6" in text
+    assert "t1.sh_dc" in text
+    assert main(["decode", str(gsc), str(out)]) == 0
+    assert out.is_file()
+
+
+def test_the_controller_codes_its_plans_in_the_templates_tiers(small_scene):
+    from gscodec_shac.codec.rate_control import RateController, make_target
+
+    template = dataclasses.replace(load_rate_point("shac_auto:template"), tiers=TierSpec((0.5, 0.5), (-3, 8)))
+    controller = RateController(small_scene.cloud, template, views=small_scene.cameras, importance_shares=(),
+                                workers=2)
+    target = make_target(small_scene.cloud.num_gaussians, bpg=120)
+    outcome = controller.encode(target)
+    assert tiers.is_tiered(outcome.stream)
+    assert outcome.stream.header["rate_point"]["tiers"] == {"shares": [0.5, 0.5], "qp_offsets": [-3, 8]}
+    assert outcome.stream.total_bytes() <= target.value
+    assert controller.importance_ is not None  # measured for the tiers, though no importance pruning is tried
