@@ -158,3 +158,10 @@ def test_the_controller_codes_its_plans_in_the_templates_tiers(small_scene):
     assert outcome.stream.header["rate_point"]["tiers"] == {"shares": [0.5, 0.5], "qp_offsets": [-3, 8]}
     assert outcome.stream.total_bytes() <= target.value
     assert controller.importance_ is not None  # measured for the tiers, though no importance pruning is tried
+
+
+def test_rate_points_lists_the_templates_tiers(capsys):
+    assert main(["rate-points", "shac_auto"]) == 0
+    assert "tiers:          by importance: 50% QP -3, then 50% QP +8" in capsys.readouterr().out
+    assert main(["rate-points", "shac_ladder"]) == 0
+    assert "tiers:" not in capsys.readouterr().out

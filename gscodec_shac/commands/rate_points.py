@@ -176,7 +176,16 @@ def _cells(point: dict[str, Any]) -> dict[str, Any]:
     set_coded = attributes["positions"]["layout"] == "set"
     out["sort"] = "morton order of the positions" if set_coded else _sort(point["sort"])
     out["prune"] = _prune(point["prune"])
+    out["tiers"] = _tiers(point.get("tiers"))
     return out
+
+
+def _tiers(tiers: dict[str, list] | None) -> str | None:
+    """``by importance: 50% QP -3, then 50% QP +8``, or None without tiers (codec/tiers.py)."""
+    if not tiers:
+        return None
+    parts = [f"{100 * share:g}% QP {offset:+d}" for share, offset in zip(tiers["shares"], tiers["qp_offsets"])]
+    return "by importance: " + ", then ".join(parts)
 
 
 def _prune(prune: dict[str, float]) -> str:
