@@ -42,6 +42,16 @@ def test_a_rate_point_reads_its_tiers_and_each_tier_moves_every_lossy_qp():
     assert "tiers" not in parse_rate_points(_point({}), "t.yaml")["p"].to_json()  # other streams keep their bytes
 
 
+def test_where_a_qp_is_too_fine_for_the_finest_tier_every_tier_moves_less():
+    point = parse_rate_points({"points": {"p": {
+        "qp": {"opacity": 0, "rotation": 2, "scale": 3, "sh_dc": 20, "sh_ac": 20},
+        "tiers": {"shares": [0.5, 0.5], "qp_offsets": [-3, 8]}}}}, "t.yaml")["p"]
+    qps = [{name: point.tier_point(i).attributes[name].qp for name in ("opacity", "rotation", "scale", "sh_dc")}
+           for i in (0, 1)]
+    assert qps[0] == {"opacity": 0, "rotation": 0, "scale": 0, "sh_dc": 17}
+    assert qps[1] == {"opacity": 0, "rotation": 7, "scale": 11, "sh_dc": 28}  # QP 2: 2/3 of +8 (5); QP 0: none
+
+
 @pytest.mark.parametrize("value, problem", [
     ({"shares": [1.0], "qp_offsets": [0]}, "2 to 8"),
     ({"shares": [0.5, 0.4], "qp_offsets": [0, 1]}, "add up to 1"),
@@ -146,13 +156,17 @@ def test_encode_info_and_decode_of_a_tiered_file(tmp_path, small_cloud, capsys):
     assert out.is_file()
 
 
-def test_the_controller_codes_its_plans_in_the_templates_tiers(small_scene):
+def test_the_controller_codes_its_plans_in_the_templates_tiers_from_enough_gaussians(small_scene, monkeypatch):
+    from gscodec_shac.codec import rate_control
     from gscodec_shac.codec.rate_control import RateController, make_target
 
     template = dataclasses.replace(load_rate_point("shac_auto:template"), tiers=TierSpec((0.5, 0.5), (-3, 8)))
     controller = RateController(small_scene.cloud, template, views=small_scene.cameras, importance_shares=(),
                                 workers=2)
     target = make_target(small_scene.cloud.num_gaussians, bpg=120)
+    assert rate_control.TIER_MIN_GAUSSIANS > small_scene.cloud.num_gaussians
+    assert not tiers.is_tiered(controller.encode(target).stream)  # too few Gaussians: one grid
+    monkeypatch.setattr(rate_control, "TIER_MIN_GAUSSIANS", small_scene.cloud.num_gaussians // 2)
     outcome = controller.encode(target)
     assert tiers.is_tiered(outcome.stream)
     assert outcome.stream.header["rate_point"]["tiers"] == {"shares": [0.5, 0.5], "qp_offsets": [-3, 8]}

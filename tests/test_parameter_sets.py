@@ -4,11 +4,12 @@ restoring them byte for byte, and the header's checks."""
 
 from __future__ import annotations
 
+import dataclasses
 import zlib
 
 import pytest
 
-from gscodec_shac.codec import Decoder, Encoder
+from gscodec_shac.codec import Decoder, Encoder, load_rate_point
 from gscodec_shac.codec import parameter_sets as ps
 from gscodec_shac.codec.container import Bitstream
 from gscodec_shac.errors import BitstreamError
@@ -36,7 +37,9 @@ def cloud():
     return make_synthetic_scene(500, seed=4, n_cameras=1, width=32, height=24).cloud
 
 
-def _encode(cloud, point: str = "shac_auto:template", share: bool = True, monkeypatch=None) -> bytes:
+def _encode(cloud, point: str | None = None, share: bool = True, monkeypatch=None) -> bytes:
+    """``point`` (default: the SHAC-auto template, one stream: its tiers off) encoded fast."""
+    point = point or dataclasses.replace(load_rate_point("shac_auto:template"), tiers=None)
     if not share:
         monkeypatch.setattr(ps, "share", lambda stream, codecs: None)
     data = Encoder(point, codec_options={"preset": "ultrafast"}).encode(cloud).to_bytes()

@@ -67,13 +67,13 @@ def test_waterfill_gives_equal_weighted_steps_and_drops_weak_features():
 
 
 def test_waterfilled_pca_stream_round_trips_with_a_qp_per_component(small_cloud):
-    point = load_rate_point("shac_auto:template")
+    point = dataclasses.replace(load_rate_point("shac_auto:template"), tiers=None)  # one stream's chunks
     stream = Encoder(point).encode(small_cloud)
     qps = [stream.chunk(c).meta["qp"] for c in stream.header["attributes"]["sh"]["chunks"]]
     assert len(set(qps)) > 3 and qps[0] == point.attributes["sh_features"].qp
     decoded = Decoder().decode(stream.to_bytes())
     assert decoded.num_gaussians == small_cloud.num_gaussians
-    coarse = Encoder(load_rate_point("shac_auto:template").with_overrides(codec_options={"preset": "ultrafast"}))
+    coarse = Encoder(point.with_overrides(codec_options={"preset": "ultrafast"}))
     assert coarse.encode(small_cloud).header["sh"]["features"] <= stream.header["sh"]["features"]
 
 
@@ -379,7 +379,9 @@ def test_a_recoded_trial_gives_the_bytes_of_a_fresh_encode(controller, small_clo
     new = {key[0] for key in set(controller._cache) - before}
     assert new and all(name == "opacity" or name.startswith("sh") for name in new)  # only the moved chunks
     for plan, stream in ((second, recoded), (first, controller._encode(first, target))):
-        fresh = Encoder(plan.rate_point, sh_stage=controller.stage_, fit_stage=False,
+        # the plan as the controller codes it (a 2,000-Gaussian cloud: one grid, no importance tiers)
+        point = dataclasses.replace(plan.rate_point, tiers=controller.tiers if controller._tiered(plan) else None)
+        fresh = Encoder(point, sh_stage=controller.stage_, fit_stage=False,
                         importance=controller.importance_).encode(small_cloud)
         fresh.header["rate_control"] = stream.header["rate_control"]
         assert stream.to_bytes() == fresh.to_bytes()
@@ -671,9 +673,11 @@ def test_the_sh_counts_as_measured_feature_by_feature(controller, small_cloud):
 
 def test_the_fit_times_its_importance_renders_inside_the_calibration(controller, small_scene):
     """``rate_control.seconds.importance``: the importance renders, part of ``calibrate`` (with a capture's
-    cameras most of the fit); absent when the controller has no importance choices."""
+    cameras most of the fit); absent when the controller has no importance choices and no tiers."""
     assert 0 < controller.seconds_["importance"] <= controller.seconds_["calibrate"]
-    plain = RateController(small_scene.cloud, views=small_scene.cameras[:2], importance_shares=(), workers=2)
+    one_grid = dataclasses.replace(load_rate_point("shac_auto:template"), tiers=None)
+    plain = RateController(small_scene.cloud, one_grid, views=small_scene.cameras[:2], importance_shares=(),
+                           workers=2)
     plain._prune_candidates()
     assert "importance" not in plain.seconds_
 

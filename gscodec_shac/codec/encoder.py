@@ -370,7 +370,11 @@ class Encoder:
         stage, features = self._tier_stage(cloud, kept)
         streams, orders = [], []
         for index, rows in enumerate(tiers.tier_rows(importance, kept, rp.tiers.shares)):
-            encoder = Encoder(rp.tier_point(index), sh_stage=stage, fit_stage=False, progress=self.progress,
+            tier_stage = None
+            if stage is not None:  # the per-row side information (pca-spatial's regions) of the tier's rows
+                tier_stage = copy.deepcopy(stage)
+                tier_stage.restrict_rows(rows)
+            encoder = Encoder(rp.tier_point(index), sh_stage=tier_stage, fit_stage=False, progress=self.progress,
                               workers=self.workers, chunk_cache=self._chunk_cache, importance=importance[rows],
                               stage_features=None if features is None else features[rows])
             encoder._tag = json.dumps([self._tag, rp.prune_json(), rp.tiers.to_json(), index])
@@ -407,6 +411,10 @@ class Encoder:
             fitted = np.asarray(stage.fit_transform(ac))
         features = np.zeros((cloud.num_gaussians, fitted.shape[1]), dtype=fitted.dtype)
         features[kept] = fitted
+        # per-row side information of every input row, as the caller's fitted stage has it (pruned rows: any)
+        position = np.zeros(cloud.num_gaussians, dtype=np.int64)
+        position[kept] = np.arange(kept.size)
+        stage.restrict_rows(position)
         return stage, features
 
     def _placement(self, cloud: GaussianCloud, grid: GridOrder | None) -> tuple:

@@ -116,6 +116,10 @@ POSITION_BITS = tuple(range(9, 17))
 PRUNE_THRESHOLDS = (0.0, 0.005, 0.01, 0.02, 0.05)
 #: Candidate shares of the Gaussians kept by render-based importance (rate-point ``prune.keep_share``).
 IMPORTANCE_SHARES = (0.8, 0.6, 0.45, 0.3)
+#: The fewest Gaussians a plan keeps for the template's importance tiers to code it (version 21): measured
+#: to win at 36,000-75,000 kept (docs/rate_control.md, "Importance tiers"), to lose on a 2,000-Gaussian
+#: synthetic scene (2.3 dB at equal size: each tier's header, positions set and 30-40 HEVC streams weigh there).
+TIER_MIN_GAUSSIANS = 30_000
 #: A size target codes the probe at its plan (and pruned as the plan prunes) and plans again at most
 #: this many times, again only when the new plan prunes in a way not yet measured (version 14) or puts
 #: the SH features' base QP where the probe has not coded them (version 16; 2 probes then let the chair's
@@ -1067,7 +1071,7 @@ class RateController:
 
     def _encode(self, plan: Plan, target: Target) -> Bitstream:
         """One real encode of ``plan``; the header records the target (the settings are in its rate point)."""
-        point = plan.rate_point if self.tiers is None else dataclasses.replace(plan.rate_point, tiers=self.tiers)
+        point = plan.rate_point if not self._tiered(plan) else dataclasses.replace(plan.rate_point, tiers=self.tiers)
         encoder = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers,
                           progress=self.progress, chunk_cache=self._cache, importance=self.importance_,
                           stage_features=self._stage_features)
@@ -1076,6 +1080,15 @@ class RateController:
         stream.header["rate_control"] = {"target": {"kind": target.kind, "value": target.value},
                                          "template": self.template.name}
         return stream
+
+    def _tiered(self, plan: Plan) -> bool:
+        """Whether ``plan`` is coded in the template's importance tiers: when its pruning keeps at least
+        :data:`TIER_MIN_GAUSSIANS` (below that each tier's own headers, positions set and streams cost more
+        than its QPs save; the pruning of a target's plans stays that of its first encode)."""
+        if self.tiers is None:
+            return False
+        share = self.prune_[plan.settings.get("prune", 0)][1]
+        return share * self.cloud.num_gaussians >= TIER_MIN_GAUSSIANS
 
     def _next_for_quality(self, target: Target, measured: Sequence[tuple[Plan, int, float]],
                           tried: set[tuple]) -> tuple[Plan, float] | None:

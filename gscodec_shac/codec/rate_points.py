@@ -274,11 +274,14 @@ class RatePoint:
         return point
 
     def tier_point(self, index: int) -> "RatePoint":
-        """The rate point of tier ``index``: every lossy QP moved by its offset (clamped to 0-51), no
-        pruning (the tiers split Gaussians already pruned) and no tiers."""
+        """The rate point of tier ``index``: every lossy QP moved by its offset, no pruning (the tiers split
+        Gaussians already pruned) and no tiers. Where a QP is too fine for the finest tier's offset (QP 2
+        and an offset of -3), every tier's offset of that attribute shrinks in proportion (to 2/3 of it,
+        rounded): the tiers spread around the QP as far as the finest can go, and at QP 0 not at all."""
         assert self.tiers is not None
-        offset = self.tiers.qp_offsets[index]
-        attributes = {name: spec if spec.qp is None else dataclasses.replace(spec, qp=_offset_qp(spec.qp, offset))
+        offsets = self.tiers.qp_offsets
+        attributes = {name: spec if spec.qp is None
+                      else dataclasses.replace(spec, qp=_offset_qp(spec.qp, _room(spec.qp, offsets) * offsets[index]))
                       for name, spec in self.attributes.items()}
         return dataclasses.replace(self, attributes=attributes, tiers=None, keep_share=1.0, min_opacity=0.0,
                                    name=f"{self.name}/tier{index}")
@@ -523,12 +526,22 @@ def _tiers(where: Where, value: Any) -> TierSpec | None:
     return TierSpec(tuple(float(v) for v in shares), tuple(int(v) for v in offsets))
 
 
-def _offset_qp(qp: int | float | tuple, offset: int) -> int | float | tuple:
-    """A QP (a fractional water-filling base, or a ladder) moved by ``offset``, within 0-51."""
+def _room(qp: int | float | tuple, offsets: tuple[int, ...]) -> float:
+    """The share of the tiers' offsets a QP takes: 1, or less when the most negative offset would pass
+    below QP 0 (a ladder: its first QP)."""
+    first = qp[0] if isinstance(qp, tuple) else qp
+    finest = min(offsets)
+    return 1.0 if finest >= 0 or first + finest >= QP_RANGE[0] else max(first, 0) / -finest
+
+
+def _offset_qp(qp: int | float | tuple, offset: float) -> int | float | tuple:
+    """A QP (a fractional water-filling base, or a ladder) moved by ``offset`` (rounded to a whole QP, a
+    fractional base to a quarter), within 0-51."""
     if isinstance(qp, tuple):
         return tuple(_offset_qp(q, offset) for q in qp)
-    moved = min(max(qp + offset, QP_RANGE[0]), QP_RANGE[1])
-    return float(moved) if isinstance(qp, float) else int(moved)
+    if isinstance(qp, float):
+        return float(min(max(qp + round(4 * offset) / 4, QP_RANGE[0]), QP_RANGE[1]))
+    return int(min(max(qp + int(round(offset)), QP_RANGE[0]), QP_RANGE[1]))
 
 
 def _is_share(value: Any) -> bool:

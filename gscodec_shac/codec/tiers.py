@@ -118,6 +118,14 @@ def is_tiered(stream: Bitstream) -> bool:
     return FEATURE in stream.features
 
 
+def sh_features(stream: Bitstream) -> int | None:
+    """How many SH features ``stream`` codes (its tiers': the most any keeps); None without an SH stage."""
+    headers = stream.header.get("tiers") if is_tiered(stream) else [stream.header]
+    counts = [(header.get("sh") or {}).get("features") for header in headers or [] if isinstance(header, dict)]
+    counts = [count for count in counts if isinstance(count, int)]
+    return max(counts) if counts else None
+
+
 def describe(stream: Bitstream) -> dict[str, Any]:
     """``gscodec-shac info``'s summary of a tiered stream (:func:`.header.describe`'s keys), each tier
     checked like a stream of its own; ``tiers`` lists the tiers' Gaussians, grids and QP offsets."""
