@@ -12,7 +12,8 @@ import yaml
 
 from gscodec_shac.codec import Decoder, Encoder
 from gscodec_shac.codec.container import PREAMBLE_SIZE, Bitstream
-from gscodec_shac.codec.header import read_header, read_headers
+from gscodec_shac.codec.header import read_header
+from gscodec_shac.codec.tiers import read_headers
 from gscodec_shac.commands.info import describe_gsc
 from gscodec_shac.errors import BitstreamError, GscodecError, MemoryLimitError
 from gscodec_shac.gsplat_compat import ShacCompression

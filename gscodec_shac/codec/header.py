@@ -222,7 +222,7 @@ class StreamHeader:
 
 def read_header(stream: Bitstream) -> StreamHeader:
     """Check ``stream``'s header completely against itself and its chunks; the checked view. A tiered
-    stream (:mod:`.tiers`) has one view per tier: :func:`read_headers`."""
+    stream has one view per tier: :func:`gscodec_shac.codec.tiers.read_headers`."""
     if "tiers" in stream.features:
         raise BitstreamError("a tiered .gsc stream has one header per tier: read them with read_headers")
     header = stream.header
@@ -307,15 +307,6 @@ def read_dc_only(stream: Bitstream, view: StreamHeader) -> np.ndarray | None:
     if view.sh is None or view.sh.dc_only is None:
         return None
     return read_flags(inflate(stream.chunk(CHUNK), view.zlib_sizes[CHUNK]), view.num_gaussians, view.sh.dc_only)
-
-
-def read_headers(stream: Bitstream) -> list[StreamHeader]:
-    """The checked views of ``stream``: its own, or one per tier of a tiered stream (:mod:`.tiers`)."""
-    from gscodec_shac.codec import tiers
-
-    if tiers.is_tiered(stream):
-        return [read_header(part) for part in tiers.split(stream)]
-    return [read_header(stream)]
 
 
 def read_stage(stream: Bitstream, view: StreamHeader, shared: bool = False) -> ShStage:

@@ -126,13 +126,20 @@ def sh_features(stream: Bitstream) -> int | None:
     return max(counts) if counts else None
 
 
+def read_headers(stream: Bitstream) -> list[Any]:
+    """The checked views (:class:`~gscodec_shac.codec.header.StreamHeader`) of ``stream``: its own, or one
+    per tier of a tiered stream."""
+    from gscodec_shac.codec.header import read_header
+
+    return [read_header(part) for part in split(stream)] if is_tiered(stream) else [read_header(stream)]
+
+
 def describe(stream: Bitstream) -> dict[str, Any]:
     """``gscodec-shac info``'s summary of a tiered stream (:func:`.header.describe`'s keys), each tier
     checked like a stream of its own; ``tiers`` lists the tiers' Gaussians, grids and QP offsets."""
     from gscodec_shac.codec.header import describe as describe_view
-    from gscodec_shac.codec.header import read_header
 
-    parts = [describe_view(read_header(part)) for part in split(stream)]
+    parts = [describe_view(view) for view in read_headers(stream)]
     header = stream.header
     total = stream.total_bytes()
     n = sum(part["num_gaussians"] for part in parts)
