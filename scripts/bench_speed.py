@@ -207,7 +207,7 @@ def write_results(stem: Path, document: Any, rows: list[dict], fields: list[str]
 
 def chosen_rate_point(stream: Path, out: Path) -> Path | None:
     """The settings a ``--target-bpg`` encode chose (its stream's rate point: QPs, position bits,
-    pruning, the SH stage with its DC-only bar) written as the point ``chosen`` of a rate-point file ``out`` on the SHAC-auto template,
+    pruning, the SH stage with its DC-only bar, the importance tiers) written as the point ``chosen`` of a rate-point file ``out`` on the SHAC-auto template,
     so a fixed encode codes the same configuration; None when the stream's rate point is not a
     SHAC-auto choice."""
     import yaml
@@ -225,6 +225,9 @@ def chosen_rate_point(stream: Path, out: Path) -> Path | None:
     settings["attributes"] = {"positions": {"bits": attributes["positions"]["bits"]}}
     settings["prune"] = dict(point.get("prune") or {})
     settings["sh"] = dict(point["sh"])  # the stage as coded, with a DC-only bar the controller chose
+    settings.pop("tiers", None)  # importance tiers as coded: the controller codes them from 30,000 Gaussians on
+    if point.get("tiers"):
+        settings["tiers"] = point["tiers"]
     document["points"] = {"chosen": settings}
     out.write_text(yaml.safe_dump(document, sort_keys=False))
     return out

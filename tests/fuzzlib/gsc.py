@@ -266,6 +266,11 @@ def _resize(header: dict, payloads: list[bytes], rng: np.random.Generator, versi
     """Scale the declared Gaussians, grid and chunk shapes up together, consistently enough to pass
     every header check (a matching grid mask is made); the plane payloads stay small."""
     factor = int(rng.choice([2, 16, 1000, 10**5, 10**7]))
+    outer, prefix, slots = header, "", list(range(len(header["chunks"])))
+    if isinstance(header.get("tiers"), list) and header["tiers"]:  # a tiered stream: its first tier grows
+        outer, header, prefix = header, header["tiers"][0], "t0."
+        slots = [i for i, e in enumerate(outer["chunks"]) if e["name"].startswith(prefix)]
+        header["chunks"] = [dict(outer["chunks"][i], name=outer["chunks"][i]["name"][len(prefix):]) for i in slots]
     height, width = header["grid"]["height"], header["grid"]["width"]
     root = max(1, int(np.sqrt(factor)))
     new_h, new_w = height * root, width * max(1, factor // root)
@@ -280,8 +285,13 @@ def _resize(header: dict, payloads: list[bytes], rng: np.random.Generator, versi
             size = (cells + 7) // 8
             if size <= 1 << 24:
                 packed = b"\xff" * (n // 8) + (bytes([(0xFF00 >> (n % 8)) & 0xFF]) if n % 8 else b"")
-                payloads[index] = zlib.compress(packed + bytes(size - len(packed)), 9)
+                payloads[slots[index]] = zlib.compress(packed + bytes(size - len(packed)), 9)
             entry["raw_size"] = size
+    if prefix:  # back into the file's table (the entries were copies) and its count
+        grown = {prefix + e["name"]: e for e in header.pop("chunks")}
+        outer["chunks"] = [dict(grown.get(e["name"], e), name=e["name"]) for e in outer["chunks"]]
+        outer["num_gaussians"] = sum(int(t.get("num_gaussians", 0)) for t in outer["tiers"])
+        header = outer
     return _pack(_dump(header), list(payloads), version=version)
 
 
