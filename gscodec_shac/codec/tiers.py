@@ -5,7 +5,7 @@ it keeps by their render-based importance (:mod:`.importance`), most important f
 tier as a stream of its own: its own positions set and grid, its own quantiser ranges, and every lossy
 QP moved by the tier's offset. A Gaussian's share of the rendered error grows with how much of the
 views it covers, so the least important half can take several QPs more than the rest for the same
-rendered error (docs/rate_control.md, "Importance tiers").
+rendered error (docs/rate_control.md, "Controller version 21: importance tiers").
 
 Format 2.6, feature ``tiers``. The file is one container whose header lists the tiers' headers
 (``header["tiers"]``, each a complete stream header with its ``features``) and whose chunks are the
