@@ -380,7 +380,7 @@ def test_a_recoded_trial_gives_the_bytes_of_a_fresh_encode(controller, small_clo
     assert new and all(name == "opacity" or name.startswith("sh") for name in new)  # only the moved chunks
     for plan, stream in ((second, recoded), (first, controller._encode(first, target))):
         # the plan as the controller codes it (a 2,000-Gaussian cloud: one grid, no importance tiers)
-        point = dataclasses.replace(plan.rate_point, tiers=controller.tiers if controller._tiered(plan) else None)
+        point = dataclasses.replace(plan.rate_point, tiers=controller.tiers if controller._tiered(plan, target) else None)
         fresh = Encoder(point, sh_stage=controller.stage_, fit_stage=False,
                         importance=controller.importance_).encode(small_cloud)
         fresh.header["rate_control"] = stream.header["rate_control"]

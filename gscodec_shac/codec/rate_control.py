@@ -1072,7 +1072,8 @@ class RateController:
 
     def _encode(self, plan: Plan, target: Target) -> Bitstream:
         """One real encode of ``plan``; the header records the target (the settings are in its rate point)."""
-        point = plan.rate_point if not self._tiered(plan) else dataclasses.replace(plan.rate_point, tiers=self.tiers)
+        point = plan.rate_point if not self._tiered(plan, target) else \
+            dataclasses.replace(plan.rate_point, tiers=self.tiers)
         encoder = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers,
                           progress=self.progress, chunk_cache=self._cache, importance=self.importance_,
                           stage_features=self._stage_features)
@@ -1082,11 +1083,14 @@ class RateController:
                                          "template": self.template.name}
         return stream
 
-    def _tiered(self, plan: Plan) -> bool:
-        """Whether ``plan`` is coded in the template's importance tiers: when its pruning keeps at least
-        :data:`TIER_MIN_GAUSSIANS` (below that each tier's own headers, positions set and streams cost more
-        than its QPs save; the pruning of a target's plans stays that of its first encode)."""
-        if self.tiers is None:
+    def _tiered(self, plan: Plan, target: Target) -> bool:
+        """Whether ``plan`` is coded in the template's importance tiers: for a size target, when its pruning
+        keeps at least :data:`TIER_MIN_GAUSSIANS` (below that each tier's own headers, positions set and
+        streams cost more than its QPs save; the pruning of a target's plans stays that of its first encode).
+        A PSNR target is coded in one grid: its search steps along the one-grid models, and in tiers plans
+        of about the same size measured up to 0.5 dB apart (bonsai's 35 dB target ended 0.27 dB above its
+        window after 8 encodes; docs/rate_control.md, "Controller version 21: importance tiers")."""
+        if self.tiers is None or target.kind != "bytes":
             return False
         share = self.prune_[plan.settings.get("prune", 0)][1]
         return share * self.cloud.num_gaussians >= TIER_MIN_GAUSSIANS
