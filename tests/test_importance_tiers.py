@@ -72,7 +72,17 @@ def test_tier_rows_split_the_kept_rows_by_descending_importance():
     kept = np.array([0, 2, 3, 4, 5])  # row 1 was pruned
     first, second = tiers.tier_rows(importance, kept, (0.4, 0.6))
     assert first.tolist() == [2, 4] and second.tolist() == [0, 3, 5]
-    assert [g.tolist() for g in tiers.tier_rows(importance, kept[:1], (0.5, 0.5))] == [[0]]  # no empty tier
+    assert [g.tolist() for g in tiers.tier_rows(importance, kept[:1], (0.5, 0.5))] == [[], [0]]
+
+
+def test_a_tier_left_empty_by_a_few_gaussians_is_skipped_and_the_others_keep_their_offsets(small_cloud, tmp_path):
+    point = load_rate_point("shac_auto:template").with_overrides(tiers={"shares": [0.5, 0.5], "qp_offsets": [-2, 9]})
+    encoder = Encoder(point, importance=np.ones(1))
+    stream = encoder.encode(small_cloud.select(np.array([5])))  # rint(0.5) = 0: the first tier is empty
+    assert [tier["tier"] for tier in stream.header["tiers"]] == [1]
+    assert Decoder().decode(stream.to_bytes()).num_gaussians == 1
+    stream.write(tmp_path / "one.gsc")
+    assert main(["info", str(tmp_path / "one.gsc")]) == 0
 
 
 def test_a_tiered_stream_round_trips_its_gaussians_with_the_important_ones_finer(tiered, small_cloud):

@@ -368,8 +368,10 @@ class Encoder:
             kept = self.kept_rows(cloud)
             importance = self._importance(cloud)
         stage, features = self._tier_stage(cloud, kept)
-        streams, orders = [], []
+        streams, orders, indices = [], [], []
         for index, rows in enumerate(tiers.tier_rows(importance, kept, rp.tiers.shares)):
+            if not rows.size:  # a few Gaussians left this tier empty
+                continue
             tier_stage = None
             if stage is not None:  # the per-row side information (pca-spatial's regions) of the tier's rows
                 tier_stage = copy.deepcopy(stage)
@@ -380,6 +382,7 @@ class Encoder:
             encoder._tag = json.dumps([self._tag, rp.prune_json(), rp.tiers.to_json(), index])
             streams.append(encoder.encode(cloud.select(rows)))
             orders.append(rows[encoder.order_])
+            indices.append(index)
             for step, seconds in encoder.timings_.items():
                 self.timings_[step] = self.timings_.get(step, 0.0) + seconds
         self.order_ = np.concatenate(orders)
@@ -390,7 +393,7 @@ class Encoder:
             "sh_degree": cloud.sh_degree,
             "prune": {**rp.prune_json(), "pruned": int(cloud.num_gaussians - kept.size)},
             "rate_point": rp.to_json(),
-        })
+        }, indices)
 
     def _tier_stage(self, cloud: GaussianCloud, kept: np.ndarray) -> tuple[ShStage | None, np.ndarray | None]:
         """The SH stage the tiers share and its features of every input row (None where the caller's

@@ -34,21 +34,23 @@ _MAX_TIERS = 8
 
 def tier_rows(importance: np.ndarray, kept: np.ndarray, shares: Sequence[float]) -> list[np.ndarray]:
     """``kept`` rows split by descending ``importance`` (ties by row) into consecutive groups of
-    ``shares`` of them; each group sorted by row, empty groups left out."""
+    ``shares`` of them, one per share (a few Gaussians may leave one empty); each sorted by row."""
     kept = np.asarray(kept, dtype=np.int64)
     ranked = kept[np.argsort(-np.asarray(importance, dtype=np.float64)[kept], kind="stable")]
     bounds = np.rint(np.cumsum(shares) * kept.size).astype(np.int64)
     bounds[-1] = kept.size
-    return [np.sort(group) for group in np.split(ranked, bounds[:-1]) if group.size]
+    return [np.sort(group) for group in np.split(ranked, bounds[:-1])]
 
 
 def _chunk_prefix(index: int) -> str:
     return f"t{index}."
 
 
-def join(streams: Sequence[Bitstream], header: dict[str, Any]) -> Bitstream:
+def join(streams: Sequence[Bitstream], header: dict[str, Any], indices: Sequence[int] | None = None) -> Bitstream:
     """One tiered stream of the tier ``streams`` (most important first) under the outer ``header``
-    (producer, counts, pruning, rate point). SHAC-PCA tiers keep one ``sh_state``."""
+    (producer, counts, pruning, rate point); ``indices``: each stream's tier in the rate point (default
+    0, 1, ...; an empty tier has no stream). SHAC-PCA tiers keep one ``sh_state``."""
+    indices = list(range(len(streams))) if indices is None else list(indices)
     out = Bitstream()
     stages = {(s.header.get("sh") or {}).get("stage") for s in streams}
     shared = len(stages) == 1 and stages <= set(SHARED_STAGES)
@@ -63,7 +65,7 @@ def join(streams: Sequence[Bitstream], header: dict[str, Any]) -> Bitstream:
             out.add_chunk(_chunk_prefix(index) + chunk.name, chunk.data, **chunk.meta)
         # the file's header holds the producer and the rate point (the tiers' are its own, QPs moved)
         inner = {key: value for key, value in stream.header.items() if key not in ("producer", "rate_point")}
-        tiers.append({**inner, "features": sorted(stream.features)})
+        tiers.append({**inner, "tier": indices[index], "features": sorted(stream.features)})
         for feature in stream.features:
             out.require(feature)
     if shared:
@@ -89,6 +91,7 @@ def split(stream: Bitstream) -> list[Bitstream]:
         if not isinstance(raw, dict):
             raise BitstreamError(f"corrupt .gsc file: tiers[{index}] is not a header")
         header = dict(raw)
+        header.pop("tier", None)
         features = header.pop("features", [])
         if not isinstance(features, list) or not all(isinstance(f, str) for f in features) \
                 or FEATURE in features or not set(features) <= stream.features:
@@ -145,7 +148,7 @@ def describe(stream: Bitstream) -> dict[str, Any]:
     n = sum(part["num_gaussians"] for part in parts)
     given = header.get("input_gaussians")
     per = given if isinstance(given, int) and not isinstance(given, bool) and given >= n else n
-    offsets = ((header.get("rate_point") or {}).get("tiers") or {}).get("qp_offsets") or [None] * len(parts)
+    offsets = ((header.get("rate_point") or {}).get("tiers") or {}).get("qp_offsets") or []
     sizes = stream.attribute_sizes()
     plans = {f"{_chunk_prefix(i)}{chunk['name']}": chunk for i, part in enumerate(parts) for chunk in part["chunks"]}
     first = parts[0]
@@ -173,6 +176,12 @@ def describe(stream: Bitstream) -> dict[str, Any]:
         "chunks": [{"name": chunk.name, "bytes": len(chunk.data), "attribute": str(chunk.meta.get("attribute", chunk.name)),
                     "bits": plans.get(chunk.name, {}).get("bits"), "qp": plans.get(chunk.name, {}).get("qp"),
                     "codec": plans.get(chunk.name, {}).get("codec")} for chunk in stream.chunks],
-        "tiers": [{"num_gaussians": part["num_gaussians"], "grid": part["grid"], "qp_offset": offset,
-                   "sh_features": part["sh_features"]} for part, offset in zip(parts, offsets)],
+        "tiers": [{"num_gaussians": part["num_gaussians"], "grid": part["grid"], "qp_offset": _offset(offsets, raw),
+                   "sh_features": part["sh_features"]} for part, raw in zip(parts, header["tiers"])],
     }
+
+
+def _offset(offsets: Sequence[Any], tier: dict[str, Any]) -> Any:
+    """The QP offset of a tier header's tier in the rate point's list (None when it does not say)."""
+    index = tier.get("tier")
+    return offsets[index] if isinstance(index, int) and 0 <= index < len(offsets) else None
