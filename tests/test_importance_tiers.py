@@ -175,10 +175,12 @@ def test_the_controller_codes_its_plans_in_the_templates_tiers_from_enough_gauss
                                 workers=2)
     target = make_target(small_scene.cloud.num_gaussians, bpg=120)
     assert rate_control.TIER_MIN_GAUSSIANS > small_scene.cloud.num_gaussians
-    assert not tiers.is_tiered(controller.encode(target).stream)  # too few Gaussians: one grid
+    one_grid = controller.encode(target)
+    assert not tiers.is_tiered(one_grid.stream) and "tiers" not in one_grid.summary()  # too few Gaussians
     monkeypatch.setattr(rate_control, "TIER_MIN_GAUSSIANS", small_scene.cloud.num_gaussians // 2)
     outcome = controller.encode(target)
     assert tiers.is_tiered(outcome.stream)
+    assert outcome.summary()["tiers"] == {"shares": [0.5, 0.5], "qp_offsets": [-3, 8]}  # encode --json says so
     assert not tiers.is_tiered(controller.encode(rate_control.Target("psnr", 40.0)).stream)  # PSNR: one grid
     assert outcome.stream.header["rate_point"]["tiers"] == {"shares": [0.5, 0.5], "qp_offsets": [-3, 8]}
     assert outcome.stream.total_bytes() <= target.value

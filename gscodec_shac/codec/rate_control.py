@@ -287,6 +287,9 @@ class Outcome:
             out["trials"] = [{k: round(v, 3) for k, v in row.items()} for row in self.trials]
         if self.recovery is not None:
             out["recovery"] = self.recovery
+        tiers = (self.stream.header.get("rate_point") or {}).get("tiers")
+        if tiers:  # the plan coded in the template's importance tiers (version 21)
+            out["tiers"] = tiers
         return out
 
 

@@ -257,6 +257,8 @@ def _run_to_target(args: argparse.Namespace) -> int:
         keep = control["recovery"]["keep"]
         quality += (f", from the model pruned to {keep:.0%} and recovered" if keep < 1
                     else ", from the model itself (the recovered ones measured worse)")
+    if "tiers" in control:  # codec/tiers.py
+        settings += "; in importance tiers, QP " + " / ".join(f"{v:+d}" for v in control["tiers"]["qp_offsets"])
     print(f"wrote {summary['output']}: {summary['bytes']:,} bytes, {size_phrase(summary)}"
           f"{quality} (rate control, {summary['rate_point']}: {settings}; {control['encodes']} encode(s)) "
           f"in {summary['seconds']:.1f} s")
