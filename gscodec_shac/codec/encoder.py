@@ -405,13 +405,8 @@ class Encoder:
             return self._stage_instance, self.stage_features
         stage = self._make_stage(cloud.sh_degree)
         assert stage is not None
-        ac = np.asarray(cloud.ac_matrix()[kept])
-        if stage.uses_dc:
-            ac = np.concatenate([cloud.sh_dc[kept], ac], axis=1)
-        if stage.uses_positions:
-            stage.set_positions(cloud.means[kept])
-        with self._timed("sh_stage"):
-            fitted = np.asarray(stage.fit_transform(ac))
+        with self._timed("sh_stage"):  # as one grid's encode fits it, on the kept rows
+            fitted = self._stage_features(stage, placement_view(cloud, kept), GatheredRows(cloud.ac_matrix(), kept), "")
         features = np.zeros((cloud.num_gaussians, fitted.shape[1]), dtype=fitted.dtype)
         features[kept] = fitted
         # per-row side information of every input row, as the caller's fitted stage has it (pruned rows: any)

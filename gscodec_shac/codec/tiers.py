@@ -21,6 +21,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from gscodec_shac.codec.container import Bitstream, Chunk
+from gscodec_shac.codec.rate_points import MAX_TIERS
 from gscodec_shac.errors import BitstreamError
 
 #: The container feature of a tiered stream.
@@ -29,7 +30,6 @@ FEATURE = "tiers"
 SHARED_STATE = "sh_state"
 #: Stages whose tiers can share one state (their states differ only in how many features they keep).
 SHARED_STAGES = ("pca",)
-_MAX_TIERS = 8
 
 
 def tier_rows(importance: np.ndarray, kept: np.ndarray, shares: Sequence[float]) -> list[np.ndarray]:
@@ -80,8 +80,8 @@ def split(stream: Bitstream) -> list[Bitstream]:
     shared SH state); one :class:`BitstreamError` for an inconsistent layout. Each tier's header is
     then checked by :func:`~gscodec_shac.codec.header.read_header` like any stream's."""
     tiers = stream.header.get("tiers")
-    if not isinstance(tiers, list) or not 1 <= len(tiers) <= _MAX_TIERS:
-        raise BitstreamError(f"corrupt .gsc file: header 'tiers' must list 1 to {_MAX_TIERS} tier headers")
+    if not isinstance(tiers, list) or not 1 <= len(tiers) <= MAX_TIERS:
+        raise BitstreamError(f"corrupt .gsc file: header 'tiers' must list 1 to {MAX_TIERS} tier headers")
     total = stream.header.get("num_gaussians")
     degree = stream.header.get("sh_degree")
     shared = stream.chunk(SHARED_STATE) if stream.has_chunk(SHARED_STATE) else None

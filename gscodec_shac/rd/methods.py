@@ -114,7 +114,7 @@ class Recipe(ABC):
 def codec_run(ctx: RunContext, stage: Any, sh_params: dict[str, Any], cloud: GaussianCloud | None = None,
               fit_stage: bool = True) -> Outcome:
     """Encode with our pipeline (sort cached), serialise, decode."""
-    from gscodec_shac.codec import Decoder, Encoder
+    from gscodec_shac.codec import Decoder, Encoder, tiers
     from gscodec_shac.rd.sortcache import cached_grid_order
 
     cloud = ctx.load_cloud() if cloud is None else cloud
@@ -135,7 +135,7 @@ def codec_run(ctx: RunContext, stage: Any, sh_params: dict[str, Any], cloud: Gau
         "timings": {k: round(v, 4) for k, v in encoder.timings_.items()},
         "sort_cached": cached,
         "sort_s": sort_s if sort_s is not None else encoder.timings_.get("sort"),
-        "sh_features": sh_feature_count(stream),
+        "sh_features": tiers.sh_features(stream),
     }
     return Outcome(decoded, len(data), dict(stream.attribute_sizes()), encode_s, decode_s, extra)
 
@@ -276,7 +276,7 @@ class Auto(Recipe):
         return tuple(f"{self._KINDS[kind]}-{value:g}" if kind != "sizes" else f"size-{value}" for value in params[kind])
 
     def run(self, ctx: RunContext, params: dict[str, Any]) -> Outcome:
-        from gscodec_shac.codec import Decoder
+        from gscodec_shac.codec import Decoder, tiers
         from gscodec_shac.codec.rate_control import TargetUnreachableError, make_target
 
         cloud = ctx.load_cloud()  # bits per Gaussian count the scene's Gaussians, also with a recovery
@@ -295,7 +295,7 @@ class Auto(Recipe):
         decoded = Decoder(workers=ctx.threads).decode(data)
         decode_s = time.perf_counter() - tic
         extra = {"rate_control": outcome.summary(), "fit_s": round(fitted_s, 3),
-                 "sh_features": sh_feature_count(outcome.stream)}
+                 "sh_features": tiers.sh_features(outcome.stream)}
         if "keep" in params.get("recover", {}):  # a fixed recovered source (a choice reports in rate_control)
             extra["recovery"] = _RECOVERIES[_recovery_key(ctx, params["recover"])].summary()
         return Outcome(decoded, len(data), dict(outcome.stream.attribute_sizes()), encode_s, decode_s, extra)
@@ -488,10 +488,3 @@ for _stage in STAGES.names():  # every other stage: a plain stage recipe ("none"
 def points_for(method: Any, rate_points: tuple[str, ...]) -> tuple[str, ...]:
     """The rate-point labels a sweep method (a :class:`~gscodec_shac.rd.spec.MethodSpec`) runs at."""
     return RECIPES.get(method.recipe).points(method.params, rate_points)
-
-
-def sh_feature_count(stream: Any) -> int | None:
-    """The SH features a stream codes (a tiered one's: the most a tier keeps; :mod:`gscodec_shac.codec.tiers`)."""
-    from gscodec_shac.codec import tiers
-
-    return tiers.sh_features(stream)
