@@ -103,6 +103,39 @@ def test_a_tiered_stream_round_trips_its_gaussians_with_the_important_ones_finer
     assert sum(chunk.name == "sh_state" for chunk in stream.chunks) == 1
 
 
+
+def _dc_only_rows(encoder: Encoder, stream: Bitstream) -> set[int]:
+    """The input rows the decoded ``stream`` gives no view-dependent colour."""
+    decoded = Decoder().decode(stream.to_bytes())
+    return set(encoder.order_[np.flatnonzero(~decoded.sh_rest.reshape(decoded.num_gaussians, -1).any(axis=1))].tolist())
+
+
+def test_the_tiers_choose_their_dc_only_gaussians_over_all_rows_as_one_grid_does(tiered, small_cloud):
+    importance = tiered[0]
+    point = dataclasses.replace(load_rate_point("shac_auto:template").with_overrides(dc_only_energy=0.05), tiers=None)
+    one_grid = Encoder(point, importance=importance)
+    expected = _dc_only_rows(one_grid, one_grid.encode(small_cloud))
+    assert 0 < len(expected) < small_cloud.num_gaussians
+    split = Encoder(point.with_overrides(tiers={"shares": [0.5, 0.5], "qp_offsets": [0, 0]}), importance=importance)
+    stream = split.encode(small_cloud)
+    assert _dc_only_rows(split, stream) == expected  # not a bar of each tier's own energy
+    assert sum(tier["sh"].get("dc_only", 0) for tier in stream.header["tiers"]) == len(expected)
+
+
+def test_a_tier_the_bar_would_leave_without_sh_keeps_its_row_of_most_energy(small_cloud):
+    ac_norm = np.linalg.norm(small_cloud.ac_matrix(), axis=1)
+    importance = ac_norm + 1.0  # the least important half has the least view-dependent energy too
+    point = load_rate_point("shac_auto:template").with_overrides(
+        dc_only_energy=0.6, tiers={"shares": [0.5, 0.5], "qp_offsets": [0, 0]})
+    encoder = Encoder(point, importance=importance)
+    kept = np.arange(small_cloud.num_gaussians)
+    split = tiers.tier_rows(importance, kept, (0.5, 0.5))
+    flags = encoder._tier_dc_only(small_cloud, kept, split)
+    assert flags[split[0]].any() and not flags[split[0]].all()
+    coded = split[1][~flags[split[1]]]
+    assert coded.tolist() == [split[1][np.argmax(ac_norm[split[1]] ** 2 * small_cloud.activated_opacities()[split[1]])]]
+
+
 def _corrupted(stream: Bitstream, change) -> bytes:
     copy = Bitstream(dict(stream.header), list(stream.chunks), stream.version, set(stream.features))
     change(copy)

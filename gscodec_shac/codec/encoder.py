@@ -176,7 +176,9 @@ class Encoder:
     importance pruning (rate point ``prune.keep_share``, :mod:`.importance`): without either it is
     measured on orbit views. ``stage_features``: a fitted ``sh_stage``'s features of every row of the
     cloud :meth:`encode` is given (what ``sh_stage.transform`` returns for them, e.g. the rate
-    controller's, which it computed for its probe): they are gathered instead of computed again. After
+    controller's, which it computed for its probe): they are gathered instead of computed again.
+    ``dc_only_rows``: a caller's choice of the DC-only Gaussians, one bool per input row (the importance
+    tiers choose them over all their rows at once), used instead of the rate point's bar. After
     :meth:`encode`, ``order_`` holds the input row of each decoded Gaussian and
     ``timings_`` the seconds per step.
     """
@@ -198,6 +200,7 @@ class Encoder:
         importance: np.ndarray | None = None,
         sh_metric: np.ndarray | None = None,
         stage_features: np.ndarray | None = None,
+        dc_only_rows: np.ndarray | None = None,
     ) -> None:
         self._stage_instance = sh_stage if isinstance(sh_stage, ShStage) else None
         name = self._stage_instance.name if self._stage_instance is not None else sh_stage
@@ -218,6 +221,7 @@ class Encoder:
         #: the AC columns' error metric a fitted SHAC-PCA stage is fitted in (:mod:`gscodec_shac.shac.view_metric`)
         self.sh_metric = sh_metric
         self.stage_features = stage_features
+        self.dc_only_rows = dc_only_rows
         self._measured: tuple[GaussianCloud, np.ndarray] | None = None
         self._dc_only: np.ndarray | None = None
         self._dc_only_shape: tuple[int, int] = (0, 0)
@@ -247,8 +251,9 @@ class Encoder:
         """
         rp = self.rate_point
         n_input, sh_degree = cloud.num_gaussians, cloud.sh_degree
-        if self.stage_features is not None and len(self.stage_features) != n_input:
-            raise ValueError(f"stage_features has {len(self.stage_features)} rows for a cloud of {n_input:,} Gaussians")
+        for name, given in (("stage_features", self.stage_features), ("dc_only_rows", self.dc_only_rows)):
+            if given is not None and len(given) != n_input:
+                raise ValueError(f"{name} has {len(given)} rows for a cloud of {n_input:,} Gaussians")
         if rp.tiers is not None:
             return self._encode_tiers(cloud)
         if release_input:
@@ -368,8 +373,10 @@ class Encoder:
             kept = self.kept_rows(cloud)
             importance = self._importance(cloud)
         stage, features = self._tier_stage(cloud, kept)
+        split = tiers.tier_rows(importance, kept, rp.tiers.shares)
+        dc_only = self._tier_dc_only(cloud, kept, split)
         streams, orders, indices = [], [], []
-        for index, rows in enumerate(tiers.tier_rows(importance, kept, rp.tiers.shares)):
+        for index, rows in enumerate(split):
             if not rows.size:  # a few Gaussians left this tier empty
                 continue
             tier_stage = None
@@ -378,7 +385,8 @@ class Encoder:
                 tier_stage.restrict_rows(rows)
             encoder = Encoder(rp.tier_point(index), sh_stage=tier_stage, fit_stage=False, progress=self.progress,
                               workers=self.workers, chunk_cache=self._chunk_cache, importance=importance[rows],
-                              stage_features=None if features is None else features[rows])
+                              stage_features=None if features is None else features[rows],
+                              dc_only_rows=None if dc_only is None else dc_only[rows])
             encoder._tag = json.dumps([self._tag, rp.prune_json(), rp.tiers.to_json(), index])
             streams.append(encoder.encode(cloud.select(rows)))
             orders.append(rows[encoder.order_])
@@ -394,6 +402,25 @@ class Encoder:
             "prune": {**rp.prune_json(), "pruned": int(cloud.num_gaussians - kept.size)},
             "rate_point": rp.to_json(),
         }, indices)
+
+    def _tier_dc_only(self, cloud: GaussianCloud, kept: np.ndarray, split: list[np.ndarray]) -> np.ndarray | None:
+        """The DC-only Gaussians of a tiered encode, one bool per input row: chosen over all ``kept`` rows
+        by the rate point's bar (:mod:`.sh_degree`), as one grid would choose them, so that a bar of
+        the whole scene's energy is not spent again in each tier (tier by tier, bonsai's important half
+        dropped 3x the energy one grid drops there: -1.5 dB). A tier whose rows would all be DC-only
+        keeps the SH of its row of most energy. None when the rate point has no DC-only Gaussians."""
+        rp = self.rate_point
+        if not rp.dc_only or cloud.sh_degree == 0:
+            return None
+        weight = self._importance(cloud) if rp.dc_only_weight == "render" else cloud.activated_opacities()
+        energy = np.zeros(cloud.num_gaussians, dtype=np.float64)
+        energy[kept] = degrees.ac_energy(GatheredRows(cloud.ac_matrix(), kept), weight[kept])
+        flags = np.zeros(cloud.num_gaussians, dtype=bool)
+        flags[kept] = degrees.dc_only_flags(energy[kept], rp.dc_only_share, rp.dc_only_energy)
+        for rows in split:
+            if rows.size and flags[rows].all():
+                flags[rows[np.argmax(energy[rows])]] = False
+        return flags
 
     def _tier_stage(self, cloud: GaussianCloud, kept: np.ndarray) -> tuple[ShStage | None, np.ndarray | None]:
         """The SH stage the tiers share and its features of every input row (None where the caller's
@@ -505,7 +532,10 @@ class Encoder:
             raise ValidationError(f"SH stage {stage.name!r} codes the DC inside its features: it cannot leave "
                                   f"Gaussians DC-only (sh.dc_only_share, sh.dc_only_energy)")
         rp = self.rate_point
-        flags = degrees.dc_only_flags(degrees.ac_energy(ac, dc_only_weight), rp.dc_only_share, rp.dc_only_energy)
+        if self.dc_only_rows is not None:  # the caller's choice (the importance tiers': :meth:`_encode_tiers`)
+            flags = np.asarray(self.dc_only_rows, dtype=bool)[self.order_]
+        else:
+            flags = degrees.dc_only_flags(degrees.ac_energy(ac, dc_only_weight), rp.dc_only_share, rp.dc_only_energy)
         coded = np.flatnonzero(~flags)
         features = self._stage_features(stage, cloud.select(coded), GatheredRows(ac.base, ac.index[coded]),
                                         f"-dc{rp.dc_only_share}-{rp.dc_only_energy}-{rp.dc_only_weight}")
