@@ -32,15 +32,22 @@ sys.path.insert(0, str(ROOT / "scripts"))
 from bench_speed import write_results  # noqa: E402
 from plan_marginals import add_scene_arguments, check_scene_arguments, fitted_scene  # noqa: E402
 
+from gscodec_shac.codec.rate_points import TIER_SPREADS  # noqa: E402
+
 FIELDS = ["kind", "setting", "bytes", "psnr", "one_grid_bytes", "saving"]
 
 
-def parse_tiers(text: str) -> list[tuple[tuple[float, ...], tuple[int, ...]]]:
-    """``"0.5,0.5@-3,8;0.3,0.7@-3,5"`` -> [(shares, QP offsets), ...]."""
+def parse_tiers(text: str) -> list[tuple[tuple[float, ...], tuple[int, ...], str | None]]:
+    """``"0.5,0.5@-3,8;0.3,0.7@-3,5@importance"`` -> [(shares, QP offsets, spread), ...] (a third field:
+    the offsets scaled by the scene's importance, ``tiers.spread``)."""
     out = []
     for item in filter(None, (part.strip() for part in text.split(";"))):
-        shares, _, offsets = item.partition("@")
-        out.append((tuple(float(v) for v in shares.split(",")), tuple(int(v) for v in offsets.split(","))))
+        shares, offsets, *spread = item.split("@")
+        if len(spread) > 1 or (spread and spread[0] not in TIER_SPREADS):
+            raise ValueError(f"{item!r}: SHARES@OFFSETS, or SHARES@OFFSETS@SPREAD with SPREAD one of "
+                             f"{', '.join(TIER_SPREADS)}")
+        out.append((tuple(float(v) for v in shares.split(",")), tuple(int(v) for v in offsets.split(",")),
+                    spread[0] if spread else None))
     return out
 
 
@@ -67,7 +74,8 @@ def moved(point: Any, step: int) -> Any:
 def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_scene_arguments(parser, "files")
-    parser.add_argument("--tiers", required=True, help='tier settings "SHARES@OFFSETS;..." e.g. "0.5,0.5@-3,8"')
+    parser.add_argument("--tiers", required=True, help='tier settings "SHARES@OFFSETS[@importance];..." e.g. '
+                        '"0.5,0.5@-3,8" (@importance: the offsets scaled by the scene\'s importance)')
     parser.add_argument("--curve", default="-2,-1,0,1,2", help="QP steps of the one-grid curve (default -2..2; "
                         "write --curve=-1,1 for a list that starts with a minus)")
     parser.add_argument("--out", required=True, type=Path, help="results stem: OUT.json and OUT.csv")
@@ -106,10 +114,11 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
         rows.append({"kind": "one grid", "setting": f"{step:+d}", "bytes": size, "psnr": psnr})
         print(f"one grid {step:+d}: {size:,} bytes, {psnr:.2f} dB", flush=True)
     curve = [(row["bytes"], row["psnr"]) for row in rows]
-    for shares, offsets in settings:
-        size, psnr = coded(dataclasses.replace(plan, tiers=TierSpec(shares, offsets)))
+    for shares, offsets, spread in settings:
+        size, psnr = coded(dataclasses.replace(plan, tiers=TierSpec(shares, offsets, spread)))
         reference = one_grid_bytes(curve, psnr)
-        label = f"{','.join(f'{v:g}' for v in shares)}@{','.join(f'{v:+d}' for v in offsets)}"
+        label = f"{','.join(f'{v:g}' for v in shares)}@{','.join(f'{v:+d}' for v in offsets)}" + \
+            (f"@{spread}" if spread else "")
         rows.append({"kind": "tiers", "setting": label, "bytes": size, "psnr": psnr,
                      "one_grid_bytes": round(reference), "saving": 1.0 - size / reference})
         print(f"tiers {label}: {size:,} bytes, {psnr:.2f} dB; one grid there {reference:,.0f}: "

@@ -52,6 +52,33 @@ def test_where_a_qp_is_too_fine_for_the_finest_tier_every_tier_moves_less():
     assert qps[1] == {"opacity": 0, "rotation": 7, "scale": 11, "sh_dc": 28}  # QP 2: 2/3 of +8 (5); QP 0: none
 
 
+
+def test_tiers_spread_by_importance_scale_their_offsets_to_three_log2_of_the_importance_ratio():
+    point = parse_rate_points(_point({"tiers": {"shares": [0.5, 0.5], "qp_offsets": [-3, 8],
+                                                "spread": "importance"}}), "t.yaml")["p"]
+    assert point.tiers.spread == "importance" and point.to_json()["tiers"]["spread"] == "importance"
+    importance = np.array([8.0, 8.0, 1.0, 1.0, 0.0])  # the halves' means 8 and 1: 3 log2 8 = 9 QPs apart
+    groups = tiers.tier_rows(importance, np.arange(4), (0.5, 0.5))
+    assert tiers.importance_spread(importance, groups) == pytest.approx(9.0)
+    assert point.tiers.with_spread(9.0) == TierSpec((0.5, 0.5), (-2, 7))  # (-3, 8) * 9 / 11, rounded
+    assert point.tiers.with_spread(19.2).qp_offsets == (-5, 14)
+    assert point.tiers.with_spread(1e9).qp_offsets == (-9, 24)  # at most 3x the given offsets
+    unseen = np.array([8.0, 8.0, 0.0, 0.0])  # a tier that shows nothing: no spread to read
+    assert tiers.importance_spread(unseen, tiers.tier_rows(unseen, np.arange(4), (0.5, 0.5))) == 0.0
+    assert "spread" not in TierSpec((0.5, 0.5), (-2, 7)).to_json()
+
+
+def test_a_tiered_encode_records_the_offsets_its_importance_gave(small_cloud, tiered):
+    importance = tiered[0]
+    spec = {"shares": [0.5, 0.5], "qp_offsets": [-3, 8], "spread": "importance"}
+    encoder = Encoder(load_rate_point("shac_auto:template").with_overrides(tiers=spec), importance=importance)
+    stream = encoder.encode(small_cloud)
+    groups = tiers.tier_rows(importance, np.arange(small_cloud.num_gaussians), (0.5, 0.5))
+    expected = TierSpec((0.5, 0.5), (-3, 8)).with_spread(tiers.importance_spread(importance, groups))
+    assert stream.header["rate_point"]["tiers"] == expected.to_json()
+    assert expected.qp_offsets != (-3, 8) and Decoder().decode(stream.to_bytes()).num_gaussians == small_cloud.num_gaussians
+
+
 @pytest.mark.parametrize("value, problem", [
     ({"shares": [1.0], "qp_offsets": [0]}, "2 to 8"),
     ({"shares": [0.5, 0.4], "qp_offsets": [0, 1]}, "add up to 1"),
@@ -60,6 +87,8 @@ def test_where_a_qp_is_too_fine_for_the_finest_tier_every_tier_moves_less():
     ({"shares": [0.5, 0.5], "qp_offsets": [0, True]}, "integers in"),
     ({"shares": [0.5, 0.5], "qp_offsets": [0, 1], "share": 1}, "share"),
     ({"shares": [0, 1.0], "qp_offsets": [0, 1]}, "numbers in (0, 1]"),
+    ({"shares": [0.5, 0.5], "qp_offsets": [0, 1], "spread": "opacity"}, "one of importance"),
+    ({"shares": [0.5, 0.5], "qp_offsets": [2, 2], "spread": "importance"}, "must rise"),
 ])
 def test_bad_tiers_are_one_clear_error(value, problem):
     with pytest.raises(RatePointError, match="tiers") as info:
@@ -222,6 +251,7 @@ def test_the_controller_codes_its_plans_in_the_templates_tiers_from_enough_gauss
 
 def test_rate_points_lists_the_templates_tiers(capsys):
     assert main(["rate-points", "shac_auto"]) == 0
-    assert "tiers:          by importance: 50% QP -3, then 50% QP +8" in capsys.readouterr().out
+    assert ("tiers:          by importance: 50% QP -3, then 50% QP +8, the offsets scaled by the scene's importance"
+            in capsys.readouterr().out)
     assert main(["rate-points", "shac_ladder"]) == 0
     assert "tiers:" not in capsys.readouterr().out

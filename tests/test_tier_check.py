@@ -14,7 +14,10 @@ def script():
 
 
 def test_tier_settings_parse_into_shares_and_offsets(script):
-    assert script.parse_tiers("0.5,0.5@-3,8; 0.3,0.7@-3,5;") == [((0.5, 0.5), (-3, 8)), ((0.3, 0.7), (-3, 5))]
+    assert script.parse_tiers("0.5,0.5@-3,8; 0.3,0.7@-3,5@importance;") == [
+        ((0.5, 0.5), (-3, 8), None), ((0.3, 0.7), (-3, 5), "importance")]
+    with pytest.raises(ValueError, match="SPREAD"):
+        script.parse_tiers("0.5,0.5@-3,8@opacity")
     with pytest.raises(ValueError):
         script.parse_tiers("0.5,0.5@-3,x")
 

@@ -15,6 +15,7 @@ encoder never tests a stage's name. The decoded cloud is in grid order.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import hashlib
 import heapq
 import itertools
@@ -374,6 +375,8 @@ class Encoder:
             importance = self._importance(cloud)
         stage, features = self._tier_stage(cloud, kept)
         split = tiers.tier_rows(importance, kept, rp.tiers.shares)
+        if rp.tiers.spread == "importance":  # the offsets this scene's importance asks for, recorded as coded
+            rp = dataclasses.replace(rp, tiers=rp.tiers.with_spread(tiers.importance_spread(importance, split)))
         dc_only = self._tier_dc_only(cloud, kept, split)
         streams, orders, indices = [], [], []
         for index, rows in enumerate(split):

@@ -104,8 +104,10 @@ TEMPLATE = "shac_auto:template"
 #: counts the file's HEVC parameter-set table (:mod:`.parameter_sets`) with its header; its PSNR search
 #: ignores a bigger encode below the target as a bracket and lets the slope reach 4 (:data:`PSNR_SLOPES`);
 #: 20 lets a target take up to 8 encodes (:data:`MAX_ENCODES`, 6 before); 21 codes the plans in the template's
-#: importance tiers (:mod:`.tiers`, format 2.6), its models and probes staying those of one grid.
-VERSION = 21
+#: importance tiers (:mod:`.tiers`, format 2.6), its models and probes staying those of one grid; 22 with the
+#: tiers' DC-only Gaussians chosen over all of them and their QP offsets scaled by the scene's importance
+#: (the template's ``tiers.spread: importance``, :func:`.tiers.importance_spread`).
+VERSION = 22
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
 #: QPs at which the probe is encoded; the models interpolate between them (and extrapolate).

@@ -89,9 +89,13 @@ _ATTRIBUTE_KEYS = {"codec", "codec_options", "bits", "qp", "layout", "allocation
 ALLOCATIONS = ("degree", "waterfill")
 _SORT_KEYS = {"method", "policy", "multiple", "seed", "weights", "normalize", "schedule"}
 _PRUNE_KEYS = {"min_opacity", "keep_share"}
-_TIER_KEYS = {"shares", "qp_offsets"}
+_TIER_KEYS = {"shares", "qp_offsets", "spread"}
 #: At most this many importance tiers per rate point (:class:`TierSpec`).
 MAX_TIERS = 8
+#: What may set the tiers' QP spread per encode (``tiers.spread``; absent: the offsets as given).
+TIER_SPREADS = ("importance",)
+#: The most a spread set per encode scales the given offsets by.
+MAX_SPREAD_FACTOR = 3.0
 #: What a Gaussian's AC energy is weighted by when choosing the DC-only ones (:mod:`.sh_degree`).
 DC_ONLY_WEIGHTS = ("alpha", "render")
 _DEFAULT_WEIGHTS = {"xyz": 1.0, "scale": 1.0, "opacity": 1.0, "dc": 1.0, "rotation": 0.0}
@@ -149,13 +153,24 @@ class SortSpec:
 class TierSpec:
     """Importance tiers (:mod:`gscodec_shac.codec.tiers`): the kept Gaussians split by render-based
     importance, most important first, ``shares`` of them per tier; each tier is coded as a stream of
-    its own with every lossy QP (the SH features' base QP too) moved by its ``qp_offsets`` entry."""
+    its own with every lossy QP (the SH features' base QP too) moved by its ``qp_offsets`` entry.
+    With ``spread="importance"`` the offsets are a shape, scaled per encode to the spread the scene's
+    importance asks for (:meth:`with_spread`, :func:`gscodec_shac.codec.tiers.importance_spread`)."""
 
     shares: tuple[float, ...]
     qp_offsets: tuple[int, ...]
+    spread: str | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {"shares": list(self.shares), "qp_offsets": list(self.qp_offsets)}
+        return {"shares": list(self.shares), "qp_offsets": list(self.qp_offsets),
+                **({"spread": self.spread} if self.spread else {})}
+
+    def with_spread(self, spread: float) -> "TierSpec":
+        """Fixed offsets whose spread (last minus first) is ``spread`` QPs, the shape of :attr:`qp_offsets`
+        (each scaled by the same factor, rounded; at most :data:`MAX_SPREAD_FACTOR` times the given ones)."""
+        given = self.qp_offsets[-1] - self.qp_offsets[0]
+        factor = 0.0 if given <= 0 else min(max(spread, 0.0) / given, MAX_SPREAD_FACTOR)
+        return TierSpec(self.shares, tuple(round(v * factor) for v in self.qp_offsets))
 
 
 @dataclass(frozen=True)
@@ -523,7 +538,13 @@ def _tiers(where: Where, value: Any) -> TierSpec | None:
             isinstance(v, int) and not isinstance(v, bool) and -QP_RANGE[1] <= v <= QP_RANGE[1] for v in offsets):
         raise where.error("tiers.qp_offsets", f"must be a list of {len(shares)} integers in "
                           f"[-{QP_RANGE[1]}, {QP_RANGE[1]}] (one per share), got {offsets!r}")
-    return TierSpec(tuple(float(v) for v in shares), tuple(int(v) for v in offsets))
+    spread = raw.get("spread")
+    if spread is not None and spread not in TIER_SPREADS:
+        raise where.error("tiers.spread", f"must be one of {', '.join(TIER_SPREADS)} (or absent), got {spread!r}")
+    if spread is not None and offsets[-1] - offsets[0] <= 0:
+        raise where.error("tiers.qp_offsets", f"must rise from the first tier to the last to be scaled by "
+                          f"tiers.spread, got {offsets!r}")
+    return TierSpec(tuple(float(v) for v in shares), tuple(int(v) for v in offsets), spread)
 
 
 def _room(qp: int | float | tuple, offsets: tuple[int, ...]) -> float:

@@ -16,6 +16,7 @@ features reads the first of them. Decoding gives the tiers' Gaussians one tier a
 
 from __future__ import annotations
 
+import math
 from typing import Any, Sequence
 
 import numpy as np
@@ -40,6 +41,24 @@ def tier_rows(importance: np.ndarray, kept: np.ndarray, shares: Sequence[float])
     bounds = np.rint(np.cumsum(shares) * kept.size).astype(np.int64)
     bounds[-1] = kept.size
     return [np.sort(group) for group in np.split(ranked, bounds[:-1])]
+
+
+def importance_spread(importance: np.ndarray, groups: Sequence[np.ndarray]) -> float:
+    """The QPs between the first tier and the last that importance asks for: ``3 log2(m_first / m_last)``
+    with ``m`` a tier's mean importance (0 when either tier is empty or shows nothing).
+
+    If a Gaussian's rendered error is its coding error times its importance ``w``, and each QP step
+    multiplies the step size by ``2^(1/6)``, the steps that spend bits where they remove most error
+    satisfy ``step^2 ~ 1 / w`` (reverse water-filling, as the SH features' QPs, :mod:`.allocation`):
+    ``QP_last - QP_first = 6 log2(step_last / step_first) = 3 log2(w_first / w_last)``. Measured at the
+    plans of size targets (docs/rate_control.md, "Controller version 22"): the chair's halves 8-9x
+    apart (about 9.5 QPs; -3 / +8 measured best), bonsai's 85-100x (about 19; -5 / +14 best)."""
+    importance = np.asarray(importance, dtype=np.float64)
+    first, last = groups[0], groups[-1]
+    if not first.size or not last.size:
+        return 0.0
+    high, low = float(importance[first].mean()), float(importance[last].mean())
+    return 3.0 * math.log2(high / low) if high > 0 and low > 0 else 0.0
 
 
 def _chunk_prefix(index: int) -> str:
