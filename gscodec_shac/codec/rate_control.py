@@ -106,7 +106,7 @@ TEMPLATE = "shac_auto:template"
 #: 20 lets a target take up to 8 encodes (:data:`MAX_ENCODES`, 6 before); 21 codes the plans in the template's
 #: importance tiers (:mod:`.tiers`, format 2.6), its models and probes staying those of one grid; 22 with the
 #: tiers' DC-only Gaussians chosen over all of them and their QP offsets scaled by the scene's importance
-#: (the template's ``tiers.spread: importance``, :func:`.tiers.importance_spread`), PSNR targets tiered too.
+#: (the template's ``tiers.spread: importance``, :func:`.tiers.importance_spread`).
 VERSION = 22
 #: The QP attributes the controller sets (``sh`` is the water-filled features' base QP).
 QP_ATTRIBUTES = ("opacity", "rotation", "scale", "sh_dc", "sh")
@@ -1089,13 +1089,13 @@ class RateController:
         return stream
 
     def _tiered(self, plan: Plan, target: Target) -> bool:
-        """Whether ``plan`` is coded in the template's importance tiers: when its pruning keeps at least
-        :data:`TIER_MIN_GAUSSIANS` (below that each tier's own headers, positions set and streams cost more
-        than its QPs save; the pruning of a target's plans stays that of its first encode). Version 21 tiered
-        size targets only: its tiered plans of about the same size measured up to 0.5 dB apart, which kept
-        PSNR targets from landing; the cause, the tiers' DC-only choice made tier by tier, is gone since
-        version 22 (docs/rate_control.md, "Controller version 22")."""
-        if self.tiers is None:
+        """Whether ``plan`` is coded in the template's importance tiers: for a size target, when its pruning
+        keeps at least :data:`TIER_MIN_GAUSSIANS` (below that each tier's own headers, positions set and
+        streams cost more than its QPs save; the pruning of a target's plans stays that of its first encode).
+        A PSNR target is coded in one grid: its search steps along the one-grid models, and in tiers plans
+        of about the same size measured up to 0.5 dB apart (bonsai's 35 dB target ended 0.27 dB above its
+        window after 8 encodes; docs/rate_control.md, "Controller version 21: importance tiers")."""
+        if self.tiers is None or target.kind != "bytes":
             return False
         share = self.prune_[plan.settings.get("prune", 0)][1]
         return share * self.cloud.num_gaussians >= TIER_MIN_GAUSSIANS
