@@ -52,7 +52,7 @@ def importance_spread(importance: np.ndarray, groups: Sequence[np.ndarray]) -> f
     satisfy ``step^2 ~ 1 / w`` (reverse water-filling, as the SH features' QPs, :mod:`.allocation`):
     ``QP_last - QP_first = 6 log2(step_last / step_first) = 3 log2(w_first / w_last)``. Measured at the
     plans of size targets (docs/rate_control.md, "Controller version 22"): the chair's halves 8-9x
-    apart (about 9.5 QPs; -3 / +8 measured best), bonsai's 85-100x (about 19; -5 / +14 best)."""
+    apart (about 9.5 QPs; -3 / +7 and -3 / +8 measured best), bonsai's 85-100x (about 19; -5 / +14 best)."""
     importance = np.asarray(importance, dtype=np.float64)
     first, last = groups[0], groups[-1]
     if not first.size or not last.size:

@@ -181,8 +181,8 @@ def _cells(point: dict[str, Any]) -> dict[str, Any]:
 
 
 def _tiers(tiers: dict[str, list] | None) -> str | None:
-    """``by importance: 50% QP -3, then 50% QP +8`` (``..., spread by the scene's importance`` with
-    ``spread``), or None without tiers (codec/tiers.py)."""
+    """``by importance: 50% QP -3, then 50% QP +8`` (and ``, the offsets scaled by the scene's importance``
+    with ``spread``), or None without tiers (codec/tiers.py)."""
     if not tiers:
         return None
     parts = [f"{100 * share:g}% QP {offset:+d}" for share, offset in zip(tiers["shares"], tiers["qp_offsets"])]
