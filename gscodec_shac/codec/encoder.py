@@ -270,7 +270,7 @@ class Encoder:
         # the AC matrix is read in grid order, a block of rows at a time; with release_input the
         # model's other arrays are freed now (the grid-order cloud has its own), the AC matrix after the stage
         ac = GatheredRows(cloud.ac_matrix(), self.order_) if sh_degree else None
-        dc_only_weight = self._dc_only_weight(cloud, grid_cloud) if sh_degree else None
+        dc_only_weight = self._dc_only_weight(cloud, self.order_) if sh_degree else None
         cloud = None
         if release_input:
             self._measured = None  # the importance measurement holds the model too
@@ -413,11 +413,11 @@ class Encoder:
         dropped 3x the energy one grid drops there: -1.5 dB). A tier whose rows would all be DC-only
         keeps the SH of its row of most energy. None when the rate point has no DC-only Gaussians."""
         rp = self.rate_point
-        if not rp.dc_only or cloud.sh_degree == 0:
+        weight = self._dc_only_weight(cloud, kept)
+        if weight is None or cloud.sh_degree == 0:
             return None
-        weight = self._importance(cloud) if rp.dc_only_weight == "render" else cloud.activated_opacities()
         energy = np.zeros(cloud.num_gaussians, dtype=np.float64)
-        energy[kept] = degrees.ac_energy(GatheredRows(cloud.ac_matrix(), kept), weight[kept])
+        energy[kept] = degrees.ac_energy(GatheredRows(cloud.ac_matrix(), kept), weight)
         flags = np.zeros(cloud.num_gaussians, dtype=bool)
         flags[kept] = degrees.dc_only_flags(energy[kept], rp.dc_only_share, rp.dc_only_energy)
         for rows in split:
@@ -477,15 +477,15 @@ class Encoder:
                                   f"({cloud.num_gaussians:,})")
         return np.asarray(importance, dtype=np.float64)
 
-    def _dc_only_weight(self, cloud: GaussianCloud, grid_cloud: GaussianCloud) -> np.ndarray | None:
-        """What each grid-order Gaussian's AC energy is weighted by when choosing the DC-only ones
+    def _dc_only_weight(self, cloud: GaussianCloud, rows: np.ndarray) -> np.ndarray | None:
+        """What the AC energy of the input ``rows`` is weighted by when choosing the DC-only ones
         (rate point ``sh.dc_only_weight``); None when none is DC-only."""
         rp = self.rate_point
         if not rp.dc_only:
             return None
         if rp.dc_only_weight == "render":
-            return self._importance(cloud)[self.order_]
-        return grid_cloud.activated_opacities()
+            return self._importance(cloud)[rows]
+        return cloud.activated_opacities()[rows]
 
     def _work_cache_key(self, what: str) -> tuple | None:
         """The shared cache's key of ``what`` under this encode's pruning and sorting settings (None: no cache)."""
