@@ -9,6 +9,14 @@ uncompressed model, beside what the controller's models predicted for it (the mo
 target's encodes left them). ``--codec-options`` also codes the plan, at its QPs, with other x265
 options (a preset, the loop filters).
 
+With ``--judge-images`` the held-out views are judged against their photos too (``photos_*``
+columns, a best exchange on the photos); ``--structure-moves`` adds the plan coded with each other
+pruning choice and DC-only bar of the controller; ``--ac-gains`` renders the model and the plan's
+file with their view-dependent colour (the AC SH) scaled by each gain, against the photos and the
+model: whether the model itself has too little view-dependent colour for its photos, so that the
+coding's shrinkage of it costs more against the photos than against the model
+(docs/rate_control.md, "The chair against its photos, measured again").
+
 At the best allocation no finer step gains more MSE per byte than the cheapest coarser step loses.
 The best pair of one finer and one coarser step of two attributes, spending the bytes one saves on the
 other, shows what reallocating single steps would buy, in dB at equal size (:func:`best_swap`;
@@ -21,6 +29,11 @@ docs/rate_control.md, "Is the plan the best allocation on held-out views?").
     python scripts/plan_marginals.py ../shared/data/scenes/bonsai_cpu_sh3/point_cloud.ply \\
         --cameras ../shared/data/scenes/bonsai_cpu_sh3/cameras.json --test-every 8 --bpg 100 \\
         --out plan_marginals_bonsai100
+    python scripts/plan_marginals.py ../outputs/train/chair_train_l3_d45/point_cloud.ply \\
+        --cameras ../outputs/train/chair_train_l3_d45/cameras.json \\
+        --judge-cameras ../outputs/train/chair_train_l3_d45/cameras_test.json --judge-every 4 \\
+        --judge-images ../shared/data/scenes/nerf_synthetic/chair/test --background 1,1,1 --bpg 104 \\
+        --structure-moves --ac-gains 1.03,1.06,1.1 --out plan_marginals_chair104_photos
 """
 
 from __future__ import annotations
@@ -41,7 +54,7 @@ sys.path.insert(0, str(ROOT / "scripts"))
 from bench_speed import write_results  # noqa: E402
 
 FIELDS = ["move", "attribute", "direction", "setting", "bytes", "d_bytes", "model_d_mse", "views_d_mse",
-          "judges_d_mse", "views_psnr", "judges_psnr"]
+          "judges_d_mse", "views_psnr", "judges_psnr", "photos_d_mse", "photos_psnr"]
 
 
 def moves(controller: Any, settings: dict[str, Any]) -> list[tuple[str, str, str, dict[str, Any]]]:
@@ -60,6 +73,25 @@ def moves(controller: Any, settings: dict[str, Any]) -> list[tuple[str, str, str
             if 0 <= j < len(choices):
                 out.append((f"{name} {direction}", name, direction, {**settings, name: _setting(choices[j])}))
     return out
+
+
+def structure_moves(controller: Any, settings: dict[str, Any]) -> list[tuple[str, str, str, dict[str, Any]]]:
+    """(label, "prune" or "dc_only", "other", settings) of each pruning choice and DC-only bar the plan
+    did not take (these choices are not ordered by fineness: each is one variant)."""
+    out = []
+    for name, count in (("prune", len(controller.prune_)), ("dc_only", len(controller.dc_only_))):
+        for index in range(count):
+            if index != settings.get(name, 0):
+                label = f"{name} {index}"
+                if name == "prune":
+                    label += " (" + ", ".join(f"{k} {v:g}" for k, v in controller.prune_[index][0].items()) + ")"
+                out.append((label, name, "other", {**settings, name: index}))
+    return out
+
+
+def with_ac_gain(cloud: Any, gain: float) -> Any:
+    """``cloud`` with its AC SH coefficients (the view-dependent colour) multiplied by ``gain``."""
+    return cloud.replace(sh_rest=cloud.sh_rest * np.float32(gain))
 
 
 def best_swap(rows: Sequence[dict[str, Any]], key: str, base_mse: float) -> dict[str, Any] | None:
@@ -109,6 +141,8 @@ def add_scene_arguments(parser: argparse.ArgumentParser, judged: str) -> None:
     held_out.add_argument("--test-every", type=int, help="hold out every k-th of --cameras in name order (as "
                           f"`gscodec-shac rd`): the controller gets the others, the {judged} are judged on them")
     parser.add_argument("--judge-every", type=int, default=1, help="every k-th held-out camera (default: all)")
+    parser.add_argument("--judge-images", help="the held-out views' photos (a folder the camera file names them "
+                        "in): judged against them too")
     parser.add_argument("--background", default="0,0,0", help="r,g,b in [0, 1] (1,1,1 for NeRF-synthetic)")
     goal = parser.add_mutually_exclusive_group(required=True)
     goal.add_argument("--bpg", type=float, help="a size target in bits per Gaussian")
@@ -131,14 +165,37 @@ def fitted_scene(args: argparse.Namespace) -> tuple[Any, Any, Any, list, tuple[f
     background = tuple(float(v) for v in args.background.split(","))
     cameras = load_cameras(args.cameras)
     if args.judge_cameras:
-        judges = load_cameras(args.judge_cameras)
+        judges = load_cameras(args.judge_cameras, args.judge_images) if args.judge_images else load_cameras(args.judge_cameras)
     else:
+        if args.judge_images:
+            cameras = load_cameras(args.cameras, args.judge_images)
         cameras, judges = test_split(cameras, args.test_every)
     controller = rc.RateController(cloud, views=cameras, background=background, progress=True)
     controller.fit()
     target = rc.make_target(cloud.num_gaussians, bpg=args.bpg) if args.bpg is not None else \
         rc.make_target(cloud.num_gaussians, size=args.size)
     return cloud, controller, target, judges[:: args.judge_every], background
+
+
+def rendered(cloud: Any, views: Sequence[Any], background: tuple[float, ...]) -> list[np.ndarray]:
+    from gscodec_shac.render import Renderer
+
+    renderer = Renderer(cloud)
+    return [renderer.render(view, background=background).image for view in views]
+
+
+def judged_photos(views: Sequence[Any], background: tuple[float, ...]) -> list[np.ndarray]:
+    """The photos of ``views`` at their resolution (as `gscodec-shac rd` loads them)."""
+    from gscodec_shac.metrics import load_image
+
+    missing = [view.name for view in views if view.image_path is None]
+    if missing:
+        raise SystemExit(f"--judge-images: no photo for camera(s) {', '.join(missing[:3])}")
+    return [load_image(view.image_path, background=background, size=(view.width, view.height)) for view in views]
+
+
+def mean_mse(images: Sequence[np.ndarray], references: Sequence[np.ndarray]) -> float:
+    return float(np.mean([np.mean((image - reference) ** 2) for image, reference in zip(images, references)]))
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
@@ -148,48 +205,67 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                         help="code the plan again with these lossy-codec options, at its QPs (repeatable; e.g. "
                         "preset=placebo or loop_filters=false): bytes and held-out PSNR against the plan's file")
     parser.add_argument("--no-moves", action="store_true", help="only the plan and its --codec-options variants")
+    parser.add_argument("--structure-moves", action="store_true",
+                        help="also code the plan with each other pruning choice and DC-only bar")
+    parser.add_argument("--ac-gains", default="", metavar="G[,G...]",
+                        help="render the model and the plan's file with the AC SH scaled by each gain (needs --judge-images)")
     parser.add_argument("--out", required=True, type=Path, help="results stem: OUT.json and OUT.csv")
     args = parser.parse_args(argv)
     check_scene_arguments(parser, args)
     try:
         option_sets = [codec_options(text) for text in args.codec_options]
+        gains = [float(g) for g in args.ac_gains.split(",") if g.strip()]
     except ValueError as exc:
         parser.error(str(exc))
+    if gains and not args.judge_images:
+        parser.error("--ac-gains needs --judge-images (the gains are judged against the photos)")
 
     from gscodec_shac.codec import rate_control as rc
-    from gscodec_shac.render import Renderer
 
     cloud, controller, target, judges, background = fitted_scene(args)
     # _encode_to, not encode: the variants are predicted with the models as the target's encodes corrected them
     outcome = controller._encode_to(target)
     base = dict(outcome.plan.settings)
     variants = [] if args.no_moves else moves(controller, base)
+    if args.structure_moves:
+        variants += structure_moves(controller, base)
     predicted = {label: controller._predict(settings).predicted_mse for label, _, _, settings in variants}
     base_predicted = controller._predict(base).predicted_mse
 
-    original = Renderer(cloud)
-    references = [original.render(view, background=background).image for view in judges]
+    photos = judged_photos(judges, background) if args.judge_images else None
+    references = rendered(cloud, judges, background)
 
-    def judged_mse(decoded: Any) -> float:
-        renderer = Renderer(decoded)
-        return float(np.mean([np.mean((renderer.render(view, background=background).image - reference) ** 2)
-                              for view, reference in zip(judges, references)]))
+    def judged(decoded: Any) -> tuple[float, float]:
+        """MSE on the held-out views against the model and against the photos (NaN without them)."""
+        images = rendered(decoded, judges, background)
+        return mean_mse(images, references), mean_mse([np.clip(i, 0, 1) for i in images], photos) if photos else math.nan
 
-    def coded(settings: dict[str, Any]) -> tuple[int, float, float]:
+    def coded(settings: dict[str, Any]) -> tuple[int, float, float, float, Any]:
         stream = controller._encode(controller._predict(settings), target)
         decoded = rc._decoded(stream, controller.workers)
-        return stream.total_bytes(), controller._rendered_mse(decoded), judged_mse(decoded)
+        return (stream.total_bytes(), controller._rendered_mse(decoded), *judged(decoded), decoded)
 
-    base_bytes, base_views, base_judges = coded(base)
+    base_bytes, base_views, base_judges, base_photos, base_decoded = coded(base)
     rows = []
     for label, name, direction, settings in variants:
-        size, views_mse, judges_mse = coded(settings)
+        size, views_mse, judges_mse, photos_mse, _ = coded(settings)
         rows.append({"move": label, "attribute": name, "direction": direction, "setting": settings[name],
                      "bytes": size, "d_bytes": size - base_bytes, "model_d_mse": predicted[label] - base_predicted,
                      "views_d_mse": views_mse - base_views, "judges_d_mse": judges_mse - base_judges,
-                     "views_psnr": rc._psnr(views_mse), "judges_psnr": rc._psnr(judges_mse)})
+                     "views_psnr": rc._psnr(views_mse), "judges_psnr": rc._psnr(judges_mse),
+                     "photos_d_mse": photos_mse - base_photos if photos else None,
+                     "photos_psnr": rc._psnr(photos_mse) if photos else None})
         print(f"{label:18s} {size - base_bytes:+8d} bytes  MSE x1e9: model {1e9 * rows[-1]['model_d_mse']:+8.1f}  "
-              f"views {1e9 * rows[-1]['views_d_mse']:+8.1f}  judges {1e9 * rows[-1]['judges_d_mse']:+8.1f}", flush=True)
+              f"views {1e9 * rows[-1]['views_d_mse']:+8.1f}  judges {1e9 * rows[-1]['judges_d_mse']:+8.1f}"
+              + (f"  photos {1e9 * rows[-1]['photos_d_mse']:+8.1f}" if photos else ""), flush=True)
+    gain_rows = []
+    for gain in gains:
+        for source, model in (("model", cloud), ("file", base_decoded)):
+            judges_mse, photos_mse = judged(with_ac_gain(model, gain))
+            gain_rows.append({"source": source, "gain": gain, "judges_psnr": rc._psnr(judges_mse),
+                              "photos_psnr": rc._psnr(photos_mse)})
+            print(f"AC x {gain:g} on the {source}: {gain_rows[-1]['photos_psnr']:.4f} dB against the photos, "
+                  f"{gain_rows[-1]['judges_psnr']:.3f} dB against the model", flush=True)
     recoded = []
     plan = controller._predict(base)
     for options in option_sets:
@@ -197,19 +273,23 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         variant = dataclasses.replace(plan, point_of=lambda settings, options=options:
                                       plan.point_of(settings).with_overrides(codec_options=options))
         stream = controller._encode(variant, target)
-        judges_mse = judged_mse(rc._decoded(stream, controller.workers))
+        judges_mse, _ = judged(rc._decoded(stream, controller.workers))
         recoded.append({"codec_options": options, "bytes": stream.total_bytes(), "judges_psnr": rc._psnr(judges_mse),
                         "d_judges_psnr": rc._psnr(judges_mse) - rc._psnr(base_judges)})
         print(f"codec options {options}: {stream.total_bytes() / base_bytes - 1:+.2%} bytes, "
               f"{recoded[-1]['d_judges_psnr']:+.3f} dB on the held-out views", flush=True)
-    swaps = {key: best_swap(rows, f"{key}_d_mse", mse) for key, mse in
-             (("views", base_views), ("judges", base_judges))}
+    keys = [("views", base_views), ("judges", base_judges)] + ([("photos", base_photos)] if photos else [])
+    swaps = {key: best_swap([r for r in rows if r["direction"] != "other"], f"{key}_d_mse", mse) for key, mse in keys}
     document = {"model": str(args.model), "target": {"kind": target.kind, "value": target.value},
                 "plan": base, "target_bytes": outcome.stream.total_bytes(), "bytes": base_bytes,
                 "views_psnr": rc._psnr(base_views), "judges_psnr": rc._psnr(base_judges), "judges": len(judges),
-                "rows": rows, "best_swap": swaps, "codec_options": recoded}
+                "photos_psnr": rc._psnr(base_photos) if photos else None,
+                "model_photos_psnr": rc._psnr(mean_mse([np.clip(i, 0, 1) for i in references], photos)) if photos else None,
+                "rows": rows, "best_swap": swaps, "codec_options": recoded, "ac_gains": gain_rows}
     print(f"plan {base}: {base_bytes:,} bytes, {document['views_psnr']:.2f} dB on the controller's views, "
-          f"{document['judges_psnr']:.2f} dB on {len(judges)} held-out views")
+          f"{document['judges_psnr']:.2f} dB on {len(judges)} held-out views"
+          + (f", {document['photos_psnr']:.4f} dB against their photos (the model: "
+             f"{document['model_photos_psnr']:.4f} dB)" if photos else ""))
     for key, swap in swaps.items():
         print(f"best single-step exchange on the {key}: " + (
             "none gains" if swap is None else

@@ -97,3 +97,42 @@ def test_sh_stage_at_plan_codes_the_plan_with_each_stage_and_scores_it(tmp_path,
     assert rows[4]["sh_state_bytes"] > rows[1]["sh_state_bytes"] > 0
     assert document["bd_rates"][0]["bd_rate_percent"] == pytest.approx(script.bd_against(rows[:3], rows[3:]))
     assert (tmp_path / "st.csv").read_text().count("\n") == 7
+
+
+def test_photos_structure_moves_and_ac_gains(tmp_path, small_scene, script):
+    """Photos with 1.5x the model's view-dependent colour: the model scaled by 1.5 matches them better
+    than the model itself; each other pruning choice and DC-only bar is one coded variant."""
+    import cv2
+    import numpy as np
+
+    from gscodec_shac.io.inria_cameras import write_inria_cameras
+    from gscodec_shac.io.ply import write_ply
+    from gscodec_shac.render import Renderer
+
+    ply, cameras, photos = tmp_path / "in.ply", tmp_path / "cameras.json", tmp_path / "photos"
+    write_ply(ply, small_scene.cloud)
+    write_inria_cameras(cameras, small_scene.cameras)
+    photos.mkdir()
+    brighter = Renderer(script.with_ac_gain(small_scene.cloud, 1.5))
+    for camera in small_scene.cameras:
+        image = np.clip(brighter.render(camera).image, 0, 1)
+        cv2.imwrite(str(photos / f"{camera.name}.png"), np.round(image[:, :, ::-1] * 255).astype(np.uint8))
+    document = script.main([str(ply), "--cameras", str(cameras), "--test-every", "4", "--judge-images", str(photos),
+                            "--bpg", "120", "--no-moves", "--structure-moves", "--ac-gains", "1.5",
+                            "--out", str(tmp_path / "pm")])
+    plan = document["plan"]
+    others = {(row["attribute"], row["setting"]) for row in document["rows"]}
+    assert all(row["direction"] == "other" and row["photos_psnr"] is not None for row in document["rows"])
+    assert ("prune", plan["prune"]) not in others and ("dc_only", plan["dc_only"]) not in others
+    assert sum(attribute == "prune" for attribute, _ in others) >= 1
+    assert document["photos_psnr"] < document["model_photos_psnr"]  # coding adds error against the photos too
+    model_gain = next(row for row in document["ac_gains"] if row["source"] == "model")
+    assert model_gain["photos_psnr"] > document["model_photos_psnr"] + 3  # the photos' own colour: 8-bit close
+    assert model_gain["judges_psnr"] < 60  # and no longer the model
+
+
+def test_ac_gains_need_photos(tmp_path, script, capsys):
+    with pytest.raises(SystemExit):
+        script.main(["m.ply", "--cameras", "c.json", "--test-every", "4", "--bpg", "100", "--ac-gains", "1.1",
+                     "--out", str(tmp_path / "x")])
+    assert "--ac-gains needs --judge-images" in capsys.readouterr().err
