@@ -76,8 +76,8 @@ conventions hold for all of them:
   writes that file; an SH stage asked for on an SH-0 model prints that it is a no-op; the
   ladder spans about 30-310 bits per Gaussian on bonsai (docs/rate_control.md). `--target-psnr`
   keeps the smallest file its at most eight encodes found at or above the target, so it can
-  overshoot: all 15 targets at 35-47 dB on bonsai, the chair and snowmiku land within +0.3 dB
-  (docs/rate_control.md, "Controller version 20"). Orbit views (no
+  overshoot: all 20 targets at 35-47 dB on bonsai, the chair, snowmiku and lego land within +0.3 dB
+  (docs/rate_control.md, "Controller version 21" and "Snowmiku with controller version 22"). Orbit views (no
   `--cameras`) stand outside the model's dense part: the radius grows until its bounding sphere
   fits the view; `--up` stays the user's axis (default +Z, below).
 
