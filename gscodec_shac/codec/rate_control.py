@@ -121,7 +121,8 @@ IMPORTANCE_SHARES = (0.8, 0.6, 0.45, 0.3)
 #: The fewest Gaussians a plan keeps for the template's importance tiers to code it (version 21): measured
 #: to win at 36,500-75,000 kept (docs/rate_control.md, "Controller version 21: importance tiers"), to lose
 #: on a 2,000-Gaussian synthetic scene (2.3 dB at equal size: each tier's header, positions set and 30-40
-#: HEVC streams weigh there) and to gain nothing on the chair's 28,118.
+#: HEVC streams weigh there) and to gain nothing on the chair's 28,118; since version 22 the tiers save 2-3%
+#: there (docs/rate_control.md, "Tiers below 30,000 kept Gaussians"), not yet taken.
 TIER_MIN_GAUSSIANS = 30_000
 #: A size target codes the probe at its plan (and pruned as the plan prunes) and plans again at most
 #: this many times, again only when the new plan prunes in a way not yet measured (version 14) or puts
