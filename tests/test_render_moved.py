@@ -98,3 +98,19 @@ def test_reserved_rows_take_the_moved_parameter_rows_without_a_copy_of_the_frame
     reserved = variants.pack_with(part_pack)
     assert np.shares_memory(reserved, renderer._workspace().pack)
     assert np.array_equal(reserved, plain)
+
+
+def test_a_frames_parameter_rows_hold_no_stale_memory():
+    """The packs' padding column is zero, not what the allocator's last owner left there (a frame's
+    rows then compare equal wherever they are packed: the test above failed on a reused heap block)."""
+    from gscodec_shac.render.projection import PACK_WIDTH
+
+    small = make_synthetic_scene(200, seed=3, n_cameras=1, width=48, height=32)
+    for _ in range(3):
+        junk = np.full((small.cloud.num_gaussians, PACK_WIDTH), np.nan)
+        del junk  # a block of this size, full of NaN, back to the allocator
+        renderer = Renderer(small.cloud)
+        frame = renderer.prepare(small.cameras[0])
+        assert frame.bins.pack.shape[0] > 0
+        assert np.all(frame.bins.pack[:, PACK_WIDTH - 1] == 0)
+        assert np.all(renderer._workspace().pack_n[:, PACK_WIDTH - 1] == 0)

@@ -78,12 +78,14 @@ class _Workspace:
     """Buffers reused from view to view (fresh multi-100 MB arrays per view cost page faults)."""
 
     def __init__(self, n: int) -> None:
-        self.pack_n = np.empty((n, PACK_WIDTH))
+        # the packs' last column is padding no kernel writes: zeros (calloc, no page touched here), so
+        # that a frame's rows hold the same bytes in every workspace (garbage made equal packs differ)
+        self.pack_n = np.zeros((n, PACK_WIDTH))
         self.rects_n = np.empty((n, 4), dtype=np.int32)
         self.radii = np.empty(n, dtype=np.int32)
         self.keys = np.empty(n, dtype=np.uint64)
         self.order = np.empty(n, dtype=np.int64)
-        self.pack = np.empty((n, PACK_WIDTH))
+        self.pack = np.zeros((n, PACK_WIDTH))
         self.rects = np.empty((n, 4), dtype=np.int32)
         self.pixels: dict[str, np.ndarray] = {}
 
@@ -91,7 +93,7 @@ class _Workspace:
         """Room for ``rows`` depth-sorted parameter rows (a frame's, then rows appended behind them,
         :meth:`.variants.FrameVariants.pack_with`); call it before preparing the frame."""
         if self.pack.shape[0] < rows:
-            self.pack = np.empty((rows, PACK_WIDTH))
+            self.pack = np.zeros((rows, PACK_WIDTH))
 
 
 def parse_background(background: Sequence[float] | np.ndarray) -> np.ndarray:
