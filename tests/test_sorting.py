@@ -301,8 +301,9 @@ def test_parallel_target_is_the_numpy_target(monkeypatch, channels, n):
 #: The pinned orders, by the vector code the fast-math kernels are compiled to: the padded grid's
 #: whole-layout sort differs between AVX2 (the machines up to 2026-11-28; also this one with
 #: NUMBA_CPU_NAME=haswell) and AVX-512 (the Intel Xeon of 2026-11-29), everything else is the same.
-#: An AMD EPYC (Zen 4, 2026-11-30) has AVX-512 and sorts as AVX2 does: LLVM keeps its vectors at 256
-#: bits there. A CPU with AVX-512 may give either set; one without it only the AVX2 set.
+#: An AMD EPYC (Zen 4, 2026-11-30) has AVX-512 and sorts as AVX2 does (probably LLVM's Zen 4 tuning,
+#: which prefers 256-bit vectors; not checked). A CPU with AVX-512 may give either set; one without it
+#: only the AVX2 set.
 PLAS_ORDERS_AVX2 = ["1890e7ba7a745057", "f4c6f58236f7484f", "f4c6f58236f7484f",
                     "bc4b81024f1628d7", "444290ba5d0e0c67", "444290ba5d0e0c67"]
 PLAS_ORDERS_AVX512 = ["1890e7ba7a745057", "9bd73a137db3ef1b", "9bd73a137db3ef1b",
