@@ -413,8 +413,10 @@ class Encoder:
         dropped 3x the energy one grid drops there: -1.5 dB). A tier whose rows would all be DC-only
         keeps the SH of its row of most energy. None when the rate point has no DC-only Gaussians."""
         rp = self.rate_point
-        weight = self._dc_only_weight(cloud, kept)
-        if weight is None or cloud.sh_degree == 0:
+        if cloud.sh_degree == 0:
+            return None
+        weight = self._dc_only_weight(cloud, kept)  # the importance or opacity of the kept rows
+        if weight is None:
             return None
         energy = np.zeros(cloud.num_gaussians, dtype=np.float64)
         energy[kept] = degrees.ac_energy(GatheredRows(cloud.ac_matrix(), kept), weight)
