@@ -163,13 +163,10 @@ def fitted_scene(args: argparse.Namespace) -> tuple[Any, Any, Any, list, tuple[f
 
     cloud, _ = read_model(args.model)
     background = tuple(float(v) for v in args.background.split(","))
-    cameras = load_cameras(args.cameras)
     if args.judge_cameras:
-        judges = load_cameras(args.judge_cameras, args.judge_images) if args.judge_images else load_cameras(args.judge_cameras)
-    else:
-        if args.judge_images:
-            cameras = load_cameras(args.cameras, args.judge_images)
-        cameras, judges = test_split(cameras, args.test_every)
+        cameras, judges = load_cameras(args.cameras), load_cameras(args.judge_cameras, args.judge_images)
+    else:  # the photos' folder names the held-out views' images (the others are never read)
+        cameras, judges = test_split(load_cameras(args.cameras, args.judge_images), args.test_every)
     controller = rc.RateController(cloud, views=cameras, background=background, progress=True)
     controller.fit()
     target = rc.make_target(cloud.num_gaussians, bpg=args.bpg) if args.bpg is not None else \
