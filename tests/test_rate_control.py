@@ -812,3 +812,55 @@ def test_the_sh_stage_is_fitted_in_the_view_metric_of_the_callers_cameras(contro
     # orbit views are the controller's guess, not where the scene is seen from: no metric
     assert RateController(cloud, workers=2)._sh_metric() is None
     assert RateController(cloud, views=small_scene.cameras, workers=2, view_metric=False)._sh_metric() is None
+
+
+# ---------------------------------------------------------------- version 23: tiers checked against one grid
+def _tiered_controller(controller, monkeypatch, offsets: tuple[int, int]):
+    """The fitted controller with two fixed tiers (``offsets``) coding every plan of its 2,000 Gaussians."""
+    from gscodec_shac.codec import rate_control
+    from gscodec_shac.codec.rate_points import TierSpec
+
+    monkeypatch.setattr(rate_control, "TIER_MIN_GAUSSIANS", 0)
+    monkeypatch.setattr(controller, "tiers", TierSpec((0.5, 0.5), offsets))
+    return controller
+
+
+def test_tiers_that_render_below_the_one_grid_prediction_send_the_target_to_one_grid(controller, monkeypatch):
+    """The less important half 30 QPs coarser renders far below the plan's one-grid prediction: the size
+    target is searched again in one grid and the file that renders better on the controller's views lands."""
+    from gscodec_shac.codec import tiers
+
+    tiered = _tiered_controller(controller, monkeypatch, (0, 30))
+    target = make_target(tiered.cloud.num_gaussians, bpg=120)
+    outcome = tiered.encode(target)
+    rows = outcome.trials
+    first_grid = next(i for i, row in enumerate(rows) if not row["tiered"])
+    assert first_grid >= 1 and not any(row["tiered"] for row in rows[first_grid:])
+    finalists = [row for row in rows if "measured_psnr" in row]
+    assert len(finalists) == 2 and finalists[0]["tiered"] and not finalists[1]["tiered"]
+    assert finalists[0]["measured_psnr"] < finalists[0]["model_psnr"]  # why one grid was searched
+    assert outcome.measured_psnr == pytest.approx(max(row["measured_psnr"] for row in finalists))
+    assert tiers.is_tiered(outcome.stream) == (finalists[0]["measured_psnr"] > finalists[1]["measured_psnr"])
+    assert outcome.stream.total_bytes() <= target.value
+    assert outcome.measured_psnr == pytest.approx(tiered.measured_psnr(outcome.stream))
+
+
+def test_tiers_that_render_at_the_one_grid_prediction_are_kept_without_a_one_grid_search(controller, monkeypatch):
+    from gscodec_shac.codec import tiers
+    from gscodec_shac.codec.rate_control import _Encoded
+
+    tiered = _tiered_controller(controller, monkeypatch, (0, 30))
+    target = make_target(tiered.cloud.num_gaussians, bpg=120)
+    tiered._one_grid = False
+    plan = tiered._first_plan(target)
+    stream = tiered._encode(plan, target)
+    assert tiers.is_tiered(stream)
+    measured = tiered.measured_psnr(stream)
+    trials = [{"tiered": 1.0}]
+    predicting_less = dataclasses.replace(plan, predicted_mse=10 ** (-(measured - 0.01) / 10))
+    kept = tiered._checked_tiers(_Encoded(stream, predicting_less, None, 0), predicting_less, target, trials,
+                                 bar=None)
+    assert kept.stream is stream and kept.measured == pytest.approx(measured) and len(trials) == 1
+    assert trials[0]["measured_psnr"] == pytest.approx(measured)
+    predicting_more = dataclasses.replace(plan, predicted_mse=10 ** (-(measured + 0.01) / 10))
+    assert tiered._falls_short(_Encoded(stream, predicting_more, None, 0), trials)
