@@ -997,13 +997,12 @@ class RateController:
             return self._encode_to(target)
         finally:
             self.models_, self._probe_rates, self._sh_points = fitted
-            self._prune_factors = {}
+            self._prune_factors, self._one_grid = {}, False
 
     def _encode_to(self, target: Target) -> Outcome:
         """:meth:`encode` with the models fitted."""
         tic = time.perf_counter()
         self._exact = {}  # bytes measured per attribute and setting
-        self._one_grid = False
         self.seconds_.pop("plan_probe", None)  # an earlier target's
         plan: Plan = self._first_plan(target)
         first_plan_bytes = plan.predicted_bytes
