@@ -10,7 +10,9 @@ uncompressed model, ``psnr_ref``):
   each of our curves at the anchor's quality (log-size interpolated linearly in PSNR
   between the two curve points around it), as a ratio to the anchor's size, with the
   Gaussians those two points kept (``n_decoded``: what the pruning left); ``-`` when
-  the anchor's quality is outside the curve.
+  the anchor's quality is outside the curve;
+* per curve, the median encode seconds and the real encodes its rate-controlled targets took (with
+  how many of those targets left the importance tiers for one grid: controller version 23).
 
     python scripts/rate_control_tables.py ../outputs/rd/rate_control > /tmp/tables.md
 """
@@ -102,6 +104,12 @@ def tables(rows: list[dict]) -> str:
         times = {m: np.median([_num(r.get("encode_s")) for _, r in pts]) for m, pts in methods.items()}
         lines += ["Encode seconds (median over the curve's points; on a shared 2-core machine): "
                   + ", ".join(f"{m} {t:.1f}" for m, t in times.items()), ""]
+        counted = {m: encodes([r for _, r in pts]) for m, pts in methods.items()}
+        counted = {m: c for m, c in counted.items() if c is not None}
+        if counted:
+            lines += ["Rate-control encodes over the curve's targets (in brackets: targets whose tiered file fell "
+                      "short and were searched again in one grid, controller version 23): "
+                      + ", ".join(f"{m} {total} ({fallbacks})" for m, (total, fallbacks) in counted.items()), ""]
         for anchor in ANCHORS:
             if anchor not in methods:
                 continue
@@ -119,6 +127,21 @@ def tables(rows: list[dict]) -> str:
                 lines.append(f"| {method} | " + " | ".join(cells) + " |")
             lines.append("")
     return "\n".join(lines)
+
+
+def encodes(rows: list[dict]) -> tuple[int, int] | None:
+    """The real encodes a curve's rate-controlled rows took, summed, and how many of its targets went on in
+    one grid after a tiered encode (a tiered trial followed by a one-grid one); None for a curve without
+    rate control."""
+    outcomes = [(row.get("extra") or {}).get("rate_control") for row in rows]
+    outcomes = [outcome for outcome in outcomes if isinstance(outcome, dict) and "encodes" in outcome]
+    if not outcomes:
+        return None
+    fallbacks = 0
+    for outcome in outcomes:
+        kinds = [bool(trial.get("tiered")) for trial in outcome.get("trials", [])]
+        fallbacks += any(first and not second for first, second in zip(kinds, kinds[1:]))
+    return sum(int(outcome["encodes"]) for outcome in outcomes), fallbacks
 
 
 def _num(value) -> float:
