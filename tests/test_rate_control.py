@@ -843,7 +843,7 @@ def test_tiers_that_render_below_the_one_grid_prediction_send_the_target_to_one_
     assert tiers.is_tiered(outcome.stream) == (finalists[0]["measured_psnr"] > finalists[1]["measured_psnr"])
     assert outcome.stream.total_bytes() <= target.value
     assert outcome.measured_psnr == pytest.approx(tiered.measured_psnr(outcome.stream))
-    assert tiered._tiered(outcome.plan, target)  # the next target starts in tiers again
+    assert tiered._tiered(outcome.plan, target)  # the plan itself qualifies for the tiers: only the search left them
 
 
 def test_tiers_that_render_at_the_one_grid_prediction_are_kept_without_a_one_grid_search(controller, monkeypatch):
@@ -852,7 +852,6 @@ def test_tiers_that_render_at_the_one_grid_prediction_are_kept_without_a_one_gri
 
     tiered = _tiered_controller(controller, monkeypatch, (0, 30))
     target = make_target(tiered.cloud.num_gaussians, bpg=120)
-    tiered._one_grid = False
     plan = tiered._first_plan(target)
     stream = tiered._encode(plan, target)
     assert tiers.is_tiered(stream)

@@ -385,7 +385,6 @@ class RateController:
         self._references: list[np.ndarray] = []
         self._covariances: np.ndarray | None = None  # the cloud's 3D covariances (for renders of its variants)
         self._exact: dict[str, dict[int, float]] = {}
-        self._one_grid = False  # a size target's search again in one grid after its tiers lost (version 23)
         self._last_order: np.ndarray | None = None  # source rows of the last encode's decoded rows
         self._probe_decoded: tuple[np.ndarray, GaussianCloud] | None = None  # (rows, decoded) at SENSITIVITY_QP
         self._sh_points: dict[int, dict[int, float]] = {}  # SH feature (-1: side information) -> {QP: bytes}
@@ -997,7 +996,7 @@ class RateController:
             return self._encode_to(target)
         finally:
             self.models_, self._probe_rates, self._sh_points = fitted
-            self._prune_factors, self._one_grid = {}, False
+            self._prune_factors = {}
 
     def _encode_to(self, target: Target) -> Outcome:
         """:meth:`encode` with the models fitted."""
@@ -1031,11 +1030,12 @@ class RateController:
                        self.probe_visibility_)
 
     def _trial(self, plan: Plan, target: Target, expected: float, trials: list[dict[str, float]],
-               bar: Any) -> Bitstream:
-        """One real encode of ``plan``, recorded in ``trials`` (predicted and measured bytes, chunks coded)."""
+               bar: Any, *, one_grid: bool = False) -> Bitstream:
+        """One real encode of ``plan`` (in one grid when ``one_grid``, else as :meth:`_tiered` says), recorded in
+        ``trials`` (predicted and measured bytes, chunks coded)."""
         cached = set(self._cache)
-        tiered = self._tiered(plan, target)
-        stream = self._encode(plan, target)
+        tiered = self._tiered(plan, target, one_grid=one_grid)
+        stream = self._encode(plan, target, one_grid=one_grid)
         bar.update(1)
         trials.append({"predicted_bytes": plan.predicted_bytes, "bytes": stream.total_bytes(),
                        "model_psnr": plan.predicted_psnr, "predicted_psnr": expected,
@@ -1044,17 +1044,17 @@ class RateController:
         self._learn(plan, stream)
         return stream
 
-    def _search_size(self, plan: Plan, target: Target, trials: list[dict[str, float]], bar: Any
-                     ) -> _Encoded | None:
-        """Encode from ``plan`` until a file lands within :data:`SIZE_TOLERANCE` under the size target
-        (or the encodes run out); the biggest file under the target."""
+    def _search_size(self, plan: Plan, target: Target, trials: list[dict[str, float]], bar: Any, *,
+                     one_grid: bool = False) -> _Encoded | None:
+        """Encode from ``plan`` (every plan in one grid when ``one_grid``) until a file lands within
+        :data:`SIZE_TOLERANCE` under the size target (or the encodes run out); the biggest file under the target."""
         tried: set[tuple] = set()
         best: _Encoded | None = None
         current: Plan | None = plan
         while current is not None and len(trials) < self.max_encodes and _key(current) not in tried:
             tried.add(_key(current))
             started = time.perf_counter()
-            stream = self._trial(current, target, plan.predicted_psnr, trials, bar)
+            stream = self._trial(current, target, plan.predicted_psnr, trials, bar, one_grid=one_grid)
             size = stream.total_bytes()
             if size <= target.value and (best is None or size > best.stream.total_bytes()):
                 best = _Encoded(stream, current, None, len(trials) - 1)
@@ -1071,7 +1071,7 @@ class RateController:
         least as well as its plan's one-grid models predict; else the target is searched again in one grid
         from ``start`` (the same first plan, the rate corrections of the tiered encodes dropped) and of the two
         files, each the biggest under the target, the one that renders better is kept. On bonsai, the chair
-        and snowmiku every tiered file of SHAC-auto rendered 0.3-4.5 dB above that prediction; on the
+        and snowmiku every tiered file of SHAC-auto rendered 0.9-5.2 dB above that prediction; on the
         500,000-Gaussian playbot the tiers lost up to 4.1 dB to one grid with files 0.6-5.9 dB below it
         (docs/rate_control.md, "Controller version 23"). Checking the first tiered encode instead saves an
         encode or two there, but compares the one-grid file with a smaller tiered one: tried, not kept."""
@@ -1079,8 +1079,8 @@ class RateController:
             return best
         if not self._falls_short(best, trials) or len(trials) >= self.max_encodes:
             return best
-        self._exact, self._one_grid = {}, True
-        one_grid = self._search_size(start, target, trials, bar)
+        self._exact = {}
+        one_grid = self._search_size(start, target, trials, bar, one_grid=True)
         if one_grid is None:
             return best
         self._measure(one_grid, trials)
@@ -1156,9 +1156,9 @@ class RateController:
                 return fine
         return free
 
-    def _encode(self, plan: Plan, target: Target) -> Bitstream:
+    def _encode(self, plan: Plan, target: Target, *, one_grid: bool = False) -> Bitstream:
         """One real encode of ``plan``; the header records the target (the settings are in its rate point)."""
-        point = plan.rate_point if not self._tiered(plan, target) else \
+        point = plan.rate_point if not self._tiered(plan, target, one_grid=one_grid) else \
             dataclasses.replace(plan.rate_point, tiers=self.tiers)
         encoder = Encoder(point, sh_stage=self.stage_, fit_stage=False, workers=self.workers,
                           progress=self.progress, chunk_cache=self._cache, importance=self.importance_,
@@ -1169,7 +1169,7 @@ class RateController:
                                          "template": self.template.name}
         return stream
 
-    def _tiered(self, plan: Plan, target: Target) -> bool:
+    def _tiered(self, plan: Plan, target: Target, *, one_grid: bool = False) -> bool:
         """Whether ``plan`` is coded in the template's importance tiers: for a size target, when its pruning
         keeps at least :data:`TIER_MIN_GAUSSIANS` (below that each tier's own headers, positions set and
         streams cost more than its QPs save; the pruning of a target's plans stays that of its first encode).
@@ -1177,8 +1177,9 @@ class RateController:
         of about the same size measured up to 0.5 dB apart (bonsai's 35 dB target ended 0.27 dB above its
         window after 8 encodes; docs/rate_control.md, "Controller version 21: importance tiers"). Tried again
         with version 22's tiers: 14 of 15 targets landed with 4-12% smaller files, bonsai's 44 dB did not
-        (plans 1% apart in size measured 42.6-46.5 dB; "Controller version 22")."""
-        if self.tiers is None or target.kind != "bytes" or self._one_grid:
+        (plans 1% apart in size measured 42.6-46.5 dB; "Controller version 22"). With ``one_grid`` never: a size
+        target searched again in one grid after its tiers fell short (version 23, :meth:`_checked_tiers`)."""
+        if self.tiers is None or target.kind != "bytes" or one_grid:
             return False
         share = self.prune_[plan.settings.get("prune", 0)][1]
         return share * self.cloud.num_gaussians >= TIER_MIN_GAUSSIANS
