@@ -174,13 +174,6 @@ def fitted_scene(args: argparse.Namespace) -> tuple[Any, Any, Any, list, tuple[f
     return cloud, controller, target, judges[:: args.judge_every], background
 
 
-def rendered(cloud: Any, views: Sequence[Any], background: tuple[float, ...]) -> list[np.ndarray]:
-    from gscodec_shac.render import Renderer
-
-    renderer = Renderer(cloud)
-    return [renderer.render(view, background=background).image for view in views]
-
-
 def judged_photos(views: Sequence[Any], background: tuple[float, ...]) -> list[np.ndarray]:
     """The photos of ``views`` at their resolution (as `gscodec-shac rd` loads them)."""
     from gscodec_shac.metrics import load_image
@@ -218,6 +211,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         parser.error("--ac-gains needs --judge-images (the gains are judged against the photos)")
 
     from gscodec_shac.codec import rate_control as rc
+    from gscodec_shac.render.renderer import render_views
 
     cloud, controller, target, judges, background = fitted_scene(args)
     # _encode_to, not encode: the variants are predicted with the models as the target's encodes corrected them
@@ -230,11 +224,11 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     base_predicted = controller._predict(base).predicted_mse
 
     photos = judged_photos(judges, background) if args.judge_images else None
-    references = rendered(cloud, judges, background)
+    references = render_views(cloud, judges, background=background, progress=False)
 
     def judged(decoded: Any) -> tuple[float, float]:
         """MSE on the held-out views against the model and against the photos (NaN without them)."""
-        images = rendered(decoded, judges, background)
+        images = render_views(decoded, judges, background=background, progress=False)
         return mean_mse(images, references), mean_mse([np.clip(i, 0, 1) for i in images], photos) if photos else math.nan
 
     def coded(settings: dict[str, Any]) -> tuple[int, float, float, float, Any]:
