@@ -592,7 +592,8 @@ def test_a_size_target_probes_again_when_its_plan_moves_the_sh_off_the_qps_coded
         log.append((plan.settings["sh"], controller._sh_measured(plan)))
 
     monkeypatch.setattr(controller, "_probe_at", lambda plan: record(probed, plan) or probe_at(plan))
-    monkeypatch.setattr(controller, "_encode", lambda plan, target: record(encoded, plan) or encode(plan, target))
+    monkeypatch.setattr(controller, "_encode", lambda plan, target, **grid: record(encoded, plan)
+                        or encode(plan, target, **grid))
     probed_again = 0
     for bpg in (70, 90, 120, 160, 220):
         probed.clear(), encoded.clear()
@@ -771,11 +772,11 @@ def test_a_size_target_measures_the_pruning_it_plans_before_its_first_encode(pru
         probed.append(plan.settings["prune"])
         return probe_at(plan)
 
-    def recording_encode(plan, target):
+    def recording_encode(plan, target, **grid):
         if not encoded:  # the first encode of the target
             measured.append(set(controller._prune_factors))
         encoded.append(plan.settings["prune"])
-        return encode(plan, target)
+        return encode(plan, target, **grid)
 
     monkeypatch.setattr(controller, "_probe_at", recording_probe_at)
     monkeypatch.setattr(controller, "_encode", recording_encode)
